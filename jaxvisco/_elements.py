@@ -144,7 +144,7 @@ class ElementType:
             factors = jnp.where(r == 0, 1.0 - xi**2, 0.5 * xi * r * (1.0 + xi * r))
             return jnp.prod(factors, axis=1)
         # Serendipity (quad8, hex20).
-        corner = np.all(r != 0, axis=1)
+        corner = np.all(_REFERENCE_NODES[self.name] != 0, axis=1)
         factors = jnp.where(r == 0, 1.0 - xi**2, 1.0 + xi * r)
         extra = jnp.where(corner, jnp.sum(xi * r, axis=1) - (self.dim - 1), 1.0)
         scale = jnp.asarray(np.where(corner, 0.5**self.dim, 0.5 ** (self.dim - 1)))

@@ -1,5 +1,6 @@
 """Unstructured meshes of one element type: construction, I/O, checks, quadrature data."""
 
+import functools
 import os
 import warnings
 
@@ -54,8 +55,21 @@ def _inv(J, det):
     return adj / det[..., None, None]
 
 
-def _reference_gradients(element: ElementType, xi: np.ndarray) -> np.ndarray:
-    return np.asarray(jax.vmap(element.shape_gradients)(jnp.asarray(xi)))
+@functools.partial(jax.jit, static_argnums=0)
+def _jacobians(name: str, points, cells, xi):
+    """Jacobians `dX/dxi` `(n_cells, nq, dim, dim)` and reference gradients `(nq, n_en, dim)`."""
+    dN = jax.vmap(element_type(name).shape_gradients)(xi)
+    J = jnp.einsum("cai,qaj->cqij", points[cells], dN)
+    return J, dN
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _quadrature_data(name: str, points, cells, xi, w):
+    J, dN = _jacobians(name, points, cells, xi)
+    det = _det(J)
+    dN_dX = jnp.einsum("qaj,cqjk->cqak", dN, _inv(J, det))
+    N = jax.vmap(element_type(name).shape_functions)(xi)
+    return N, dN_dX, det * w
 
 
 class QuadratureData(eqx.Module):
@@ -252,18 +266,19 @@ class Mesh(eqx.Module):
         points = np.asarray(self.points)
         if self.dim == 2:
             points = np.column_stack([points, np.zeros(len(points))])
-        m = meshio.Mesh(points, [(self.element.meshio_name, np.asarray(self.cells))])
+        cells = np.asarray(self.cells)
+        cell_data = None
+        fmt = file_format or os.fspath(path)
+        if str(fmt).startswith("gmsh") or str(fmt).endswith(".msh"):
+            # Gmsh wants physical/geometrical tags; tag everything 1.
+            tags = [np.ones(len(cells), dtype=np.int32)]
+            cell_data = {"gmsh:physical": tags, "gmsh:geometrical": tags}
+        m = meshio.Mesh(points, [(self.element.meshio_name, cells)], cell_data=cell_data)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             m.write(os.fspath(path), file_format=file_format, **kwargs)
 
     # ----------------------------------------------------------- geometry
-
-    def _jacobians(self, xi: np.ndarray):
-        dN = jnp.asarray(_reference_gradients(self.element, xi))  # (nq, n_en, dim)
-        Xe = self.points[self.cells]  # (n_cells, n_en, dim)
-        J = jnp.einsum("cai,qaj->cqij", Xe, dN)
-        return J, dN
 
     def quadrature_data(self, order: int | None = None) -> QuadratureData:
         """Shape functions, physical gradients and weights at the quadrature points.
@@ -278,16 +293,15 @@ class Mesh(eqx.Module):
         `JxW (n_cells, nq)`.
         """
         xi, w = self.element.quadrature(order)
-        J, dN = self._jacobians(xi)
-        det = _det(J)
-        dN_dX = jnp.einsum("qaj,cqjk->cqak", dN, _inv(J, det))
-        N = jax.vmap(self.element.shape_functions)(jnp.asarray(xi))
-        return QuadratureData(N=N, dN_dX=dN_dX, JxW=det * jnp.asarray(w))
+        N, dN_dX, JxW = _quadrature_data(
+            self.cell_type, self.points, self.cells, jnp.asarray(xi), jnp.asarray(w)
+        )
+        return QuadratureData(N=N, dN_dX=dN_dX, JxW=JxW)
 
     def volume(self) -> jax.Array:
         """Total volume (area in 2D): sum of `|det J| w` over all quadrature points."""
         xi, w = self.element.quadrature()
-        J, _ = self._jacobians(xi)
+        J, _ = _jacobians(self.cell_type, self.points, self.cells, jnp.asarray(xi))
         return jnp.sum(jnp.abs(_det(J)) * jnp.asarray(w))
 
     def validate(self, tol: float = 1e-8) -> "Mesh":
@@ -314,7 +328,7 @@ class Mesh(eqx.Module):
             )
         xi_q, _ = self.element.quadrature()
         xi = np.concatenate([xi_q, self.element.reference_nodes()], axis=0)
-        J, _ = self._jacobians(xi)
+        J, _ = _jacobians(self.cell_type, self.points, self.cells, jnp.asarray(xi))
         det = np.asarray(_det(J))
         typical = np.mean(np.abs(det))
         if not typical > 0:
