@@ -209,8 +209,11 @@ class Mesh(eqx.Module):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 m = meshio.read(path)
-        except Exception as e:  # meshio raises many types; normalise them.
-            raise ValueError(f"could not read mesh file {path!r}: {e}") from e
+        except (Exception, SystemExit) as e:
+            # meshio raises many exception types, and calls sys.exit(1) when no reader
+            # accepts the file; normalise all of them.
+            reason = "no meshio reader accepts it" if isinstance(e, SystemExit) else e
+            raise ValueError(f"could not read mesh file {path!r}: {reason}") from e
         blocks = [b for b in m.cells if len(b.data)]
         if cell_type is not None:
             want = element_type(cell_type).meshio_name
