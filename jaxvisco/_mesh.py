@@ -72,6 +72,12 @@ def _quadrature_data(name: str, points, cells, xi, w):
     return N, dN_dX, det * w
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _volume(name: str, points, cells, xi, w):
+    J, _ = _jacobians(name, points, cells, xi)
+    return jnp.sum(jnp.abs(_det(J)) * w)
+
+
 class QuadratureData(eqx.Module):
     """Shape functions and their physical gradients at the quadrature points.
 
@@ -304,8 +310,7 @@ class Mesh(eqx.Module):
     def volume(self) -> jax.Array:
         """Total volume (area in 2D): sum of `|det J| w` over all quadrature points."""
         xi, w = self.element.quadrature()
-        J, _ = _jacobians(self.cell_type, self.points, self.cells, jnp.asarray(xi))
-        return jnp.sum(jnp.abs(_det(J)) * jnp.asarray(w))
+        return _volume(self.cell_type, self.points, self.cells, jnp.asarray(xi), jnp.asarray(w))
 
     def validate(self, tol: float = 1e-8) -> "Mesh":
         """Check the mesh; return it unchanged or raise `ValueError` naming the culprit.
@@ -332,7 +337,7 @@ class Mesh(eqx.Module):
         xi_q, _ = self.element.quadrature()
         xi = np.concatenate([xi_q, self.element.reference_nodes()], axis=0)
         J, _ = _jacobians(self.cell_type, self.points, self.cells, jnp.asarray(xi))
-        det = np.asarray(_det(J))
+        det = _det(np.asarray(J))
         typical = np.mean(np.abs(det))
         if not typical > 0:
             raise ValueError("all elements are degenerate (det J = 0 everywhere).")
