@@ -1,0 +1,136 @@
+"""Finite-strain viscoelasticity after Reese & Govindjee (IJSS 35, 1998).
+
+Free energies are plain scalar functions of a (3, 3) tensor; every stress, rate and
+tangent below is obtained by automatic differentiation of them (THEORY §1).
+"""
+
+from typing import Callable, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._tensor import det3, dev, ddot, inv3, sym
+from ._validation import check_positive
+
+
+class NeoHooke(eqx.Module):
+    r"""Compressible Neo-Hookean energy
+    $\psi(C) = \frac{\mu}{2}(\operatorname{tr} C - 3) - \mu \ln J + \frac{\lambda}{2} (\ln J)^2$,
+    $J = \sqrt{\det C}$.
+
+    It depends on invariants only, so it may be called with the non-symmetric
+    $C_e = C\Gamma^{-1}$ of the non-equilibrium branch.
+
+    **Arguments:** `lam`, `mu`: Lamé parameters (> 0).
+    """
+
+    lam: jax.Array
+    mu: jax.Array
+
+    def __init__(self, lam, mu):
+        check_positive("NeoHooke lam", lam)
+        check_positive("NeoHooke mu", mu)
+        self.lam = jnp.asarray(lam, dtype=float)
+        self.mu = jnp.asarray(mu, dtype=float)
+
+    def __call__(self, C):
+        ln_j = 0.5 * jnp.log(det3(C))
+        return 0.5 * self.mu * (jnp.trace(C) - 3.0) - self.mu * ln_j + 0.5 * self.lam * ln_j**2
+
+    @property
+    def bulk_modulus(self):
+        return self.lam + 2.0 * self.mu / 3.0
+
+
+class ReeseGovindjee(eqx.Module):
+    r"""Reese–Govindjee viscoelastic material:
+    $\Psi(C, \Gamma) = \Psi_{eq}(C) + \Psi_{neq}(C\Gamma^{-1})$ and the evolution law
+    $\dot\Gamma = 2\Gamma(\mathbb{V}^{-1}:M_e)$ with
+    $\mathbb{V}^{-1}:A = \operatorname{dev}A/(2\eta_{dev}) + \operatorname{tr}A/(9\eta_{vol})\,I$.
+
+    **Arguments:**
+    - `equilibrium`: scalar energy $\Psi_{eq}(C)$ (e.g. `NeoHooke`, or any function).
+    - `nonequilibrium`: scalar energy $\Psi_{neq}(C_e)$ of invariants of $C_e$, or `None`
+      for a purely elastic material, which carries no internal variable at all.
+    - `eta_dev`, `eta_vol`: viscosities (> 0; `inf` freezes that flow).
+
+    All parameters are array leaves: `jax.grad` with respect to them and
+    `eqx.tree_at(lambda m: m.eta_dev, material, value)` work.
+    """
+
+    equilibrium: Callable
+    nonequilibrium: Optional[Callable]
+    eta_dev: jax.Array
+    eta_vol: jax.Array
+
+    def __init__(self, equilibrium, nonequilibrium=None, eta_dev=jnp.inf, eta_vol=jnp.inf):
+        if not callable(equilibrium):
+            raise TypeError(f"equilibrium must be a callable energy psi(C), got {type(equilibrium).__name__}.")
+        if nonequilibrium is not None and not callable(nonequilibrium):
+            raise TypeError(
+                f"nonequilibrium must be a callable energy psi(C_e) or None, got {type(nonequilibrium).__name__}."
+            )
+        check_positive("eta_dev", eta_dev, allow_inf=True)
+        check_positive("eta_vol", eta_vol, allow_inf=True)
+        self.equilibrium = equilibrium
+        self.nonequilibrium = nonequilibrium
+        self.eta_dev = jnp.asarray(eta_dev, dtype=float)
+        self.eta_vol = jnp.asarray(eta_vol, dtype=float)
+
+    @property
+    def has_internal_variable(self) -> bool:
+        return self.nonequilibrium is not None
+
+    # -- energy and its derivatives ------------------------------------------------
+    def free_energy(self, C, Gamma=None):
+        psi = self.equilibrium(C)
+        if self.has_internal_variable:
+            psi = psi + self.nonequilibrium(C @ inv3(Gamma))
+        return psi
+
+    def stress(self, C, Gamma=None):
+        """Second Piola–Kirchhoff stress $S = 2\\,\\partial\\Psi/\\partial C$."""
+        return 2.0 * sym(jax.grad(self.free_energy, argnums=0)(C, Gamma))
+
+    def energy_gradient_gamma(self, C, Gamma):
+        r"""$\partial\Psi/\partial\Gamma$ (symmetrized)."""
+        return sym(jax.grad(self.free_energy, argnums=1)(C, Gamma))
+
+    def mandel_stress(self, C, Gamma):
+        """Elastic Mandel stress $M_e = C_e^T S_e$, $S_e = 2\\,\\partial\\Psi_{neq}/\\partial C_e$."""
+        Ce = C @ inv3(Gamma)
+        Se = 2.0 * jax.grad(self.nonequilibrium)(Ce)
+        return Ce.T @ Se
+
+    def inverse_viscosity(self, A):
+        r"""$\mathbb{V}^{-1}:A$."""
+        tr = jnp.trace(A)
+        return dev(A) / (2.0 * self.eta_dev) + tr / (9.0 * self.eta_vol) * jnp.eye(3, dtype=A.dtype)
+
+    def gamma_rate(self, C, Gamma):
+        r"""$\dot\Gamma = 2\Gamma(\mathbb{V}^{-1}:M_e)$; zero for an elastic material."""
+        if not self.has_internal_variable:
+            raise ValueError("gamma_rate: this material has no internal variable (nonequilibrium=None).")
+        return sym(2.0 * Gamma @ self.inverse_viscosity(self.mandel_stress(C, Gamma)))
+
+    def dissipation(self, C, Gamma):
+        r"""Dissipation per reference volume $D = -\partial\Psi/\partial\Gamma : \dot\Gamma \ge 0$."""
+        if not self.has_internal_variable:
+            return jnp.zeros((), dtype=C.dtype)
+        return -ddot(self.energy_gradient_gamma(C, Gamma), self.gamma_rate(C, Gamma))
+
+    def tangent(self, C, Gamma=None):
+        r"""Material tangent $\mathbb{C} = 2\,\partial S/\partial C$, shape (3, 3, 3, 3)."""
+        return 2.0 * jax.jacfwd(self.stress, argnums=0)(C, Gamma)
+
+    def gamma_rate_tangent(self, C, Gamma):
+        r"""$(\partial\dot\Gamma/\partial C, \partial\dot\Gamma/\partial\Gamma)$, each (3, 3, 3, 3)."""
+        return jax.jacfwd(self.gamma_rate, argnums=(0, 1))(C, Gamma)
+
+
+def paper_material():
+    """The material of the paper's example: both branches Neo-Hookean with
+    λ = 30000, μ = 7500; η_dev = 50000, η_vol = 10000 (THEORY §4)."""
+    nh = NeoHooke(lam=30000.0, mu=7500.0)
+    return ReeseGovindjee(equilibrium=nh, nonequilibrium=nh, eta_dev=50000.0, eta_vol=10000.0)

@@ -1,0 +1,168 @@
+"""A scene: what moves. Mesh, material, density, initial state, loads."""
+
+from typing import Callable, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._config import require_x64
+from ._krylov import pcg
+from ._materials import ReeseGovindjee
+from ._space import Discretization
+from ._validation import check_finite, check_positive
+
+
+class State(eqx.Module):
+    """Hamiltonian state: nodal positions `x`, nodal momenta `p`, and the internal
+    variable `gamma` at every spatial quadrature point (None for elastic scenes)."""
+
+    x: jax.Array
+    p: jax.Array
+    gamma: Optional[jax.Array]
+
+
+class Scene(eqx.Module):
+    r"""A body in motion: mesh + material + density + initial state (+ loads).
+
+    **Arguments:**
+    - `mesh`: a `jaxvisco.Mesh`.
+    - `material`: a `ReeseGovindjee` material, or a plain energy function $\psi(C)$
+      (then the scene is elastic and carries no internal variable).
+    - `density`: mass density in the reference configuration (> 0).
+    - `positions`: initial nodal positions (default: the mesh points, undeformed).
+    - `velocities`: initial nodal velocities (default zero); momenta are $p_0 = M v_0$.
+    - `gamma`: initial internal variable (n_cells, nq, 3, 3) (default identity: virgin).
+    - `load`, `load_time`: dead nodal loads `load` (n_nodes, dim) scaled by the scalar
+      function `load_time(t)` (default 1); none for free motion.
+    - `quadrature_order`: spatial quadrature order (default: the element's full rule).
+    """
+
+    mesh: eqx.Module
+    material: ReeseGovindjee
+    density: jax.Array
+    disc: Discretization
+    x0: jax.Array
+    v0: jax.Array
+    gamma0: Optional[jax.Array]
+    load: Optional[jax.Array]
+    load_time: Optional[Callable] = eqx.field(static=True)
+
+    def __init__(self, mesh, material, density, positions=None, velocities=None, gamma=None,
+                 load=None, load_time=None, quadrature_order=None):
+        require_x64()
+        if not isinstance(material, ReeseGovindjee):
+            if not callable(material):
+                raise TypeError(
+                    f"material must be a ReeseGovindjee material or an energy function psi(C), "
+                    f"got {type(material).__name__}."
+                )
+            material = ReeseGovindjee(equilibrium=material)
+        check_positive("density", density)
+        self.mesh = mesh
+        self.material = material
+        self.density = jnp.asarray(density, dtype=float)
+        self.disc = Discretization(mesh, quadrature_order)
+        shape = (mesh.n_nodes, mesh.dim)
+        self.x0 = _field("positions", positions, shape, mesh.points)
+        self.v0 = _field("velocities", velocities, shape, jnp.zeros(shape))
+        if material.has_internal_variable:
+            gshape = (self.disc.n_cells, self.disc.n_qp, 3, 3)
+            self.gamma0 = _field("gamma", gamma, gshape, jnp.broadcast_to(jnp.eye(3), gshape))
+        elif gamma is not None:
+            raise ValueError("gamma was given but the material has no internal variable (nonequilibrium=None).")
+        else:
+            self.gamma0 = None
+        self.load = None if load is None else _field("load", load, shape, None)
+        if load_time is not None and load is None:
+            raise ValueError("load_time was given without a load.")
+        self.load_time = load_time
+
+    @property
+    def dim(self):
+        return self.mesh.dim
+
+    @property
+    def has_internal_variable(self):
+        return self.material.has_internal_variable
+
+    def initial_state(self) -> State:
+        return State(self.x0, self.disc.mass_matvec(self.v0, self.density), self.gamma0)
+
+    def external_force(self, t):
+        """Nodal dead load at time t (zeros for free motion)."""
+        if self.load is None:
+            return jnp.zeros_like(self.x0)
+        scale = 1.0 if self.load_time is None else self.load_time(t)
+        return scale * self.load
+
+    # -- diagnostics ---------------------------------------------------------------
+    def velocity(self, p, rtol=1e-14):
+        """$v = M^{-1}p$ by Jacobi-preconditioned conjugate gradients on the consistent mass."""
+        disc, rho = self.disc, self.density
+        inv_diag = 1.0 / disc.mass_diagonal(rho)[:, None]
+        v, _ = pcg(lambda u: disc.mass_matvec(u, rho), inv_diag, p, rtol, 500)
+        return v
+
+    def kinetic_energy(self, p):
+        return 0.5 * jnp.vdot(p, self.velocity(p))
+
+    def _qp_map(self, fn, x, gamma):
+        C = _right_cauchy_green(self.disc.deformation_gradient(x))
+        flat_C = C.reshape(-1, 3, 3)
+        if gamma is None:
+            vals = jax.vmap(lambda c: fn(c, None))(flat_C)
+        else:
+            vals = jax.vmap(fn)(flat_C, gamma.reshape(-1, 3, 3))
+        return vals.reshape(C.shape[:-2] + vals.shape[1:])
+
+    def free_energy(self, x, gamma):
+        return self.disc.integrate(self._qp_map(self.material.free_energy, x, gamma))
+
+    def dissipation_rate(self, x, gamma):
+        if gamma is None:
+            return jnp.zeros((), dtype=x.dtype)
+        return self.disc.integrate(self._qp_map(self.material.dissipation, x, gamma))
+
+    def stress(self, x, gamma):
+        """Second Piola–Kirchhoff stress at every quadrature point."""
+        return self._qp_map(self.material.stress, x, gamma)
+
+    def internal_force(self, x, gamma):
+        F = self.disc.deformation_gradient(x)
+        return self.disc.force(F @ self.stress(x, gamma))
+
+    def diagnostics(self, state: State) -> dict:
+        """Kinetic and free energy, H, dissipation rate, linear and angular momentum."""
+        kin = self.kinetic_energy(state.p)
+        free = self.free_energy(state.x, state.gamma)
+        return dict(
+            kinetic=kin,
+            free_energy=free,
+            energy=kin + free,
+            dissipation_rate=self.dissipation_rate(state.x, state.gamma),
+            linear_momentum=jnp.sum(state.p, axis=0),
+            angular_momentum=angular_momentum(state.x, state.p),
+        )
+
+
+def angular_momentum(x, p):
+    """$L = \\sum_A x_A \\times p_A$ (a scalar in 2D)."""
+    if x.shape[-1] == 2:
+        return jnp.sum(x[..., 0] * p[..., 1] - x[..., 1] * p[..., 0], axis=-1)
+    return jnp.sum(jnp.cross(x, p), axis=-2)
+
+
+def _right_cauchy_green(F):
+    return jnp.swapaxes(F, -1, -2) @ F
+
+
+def _field(name, value, shape, default):
+    if value is None:
+        return jnp.asarray(default, dtype=float)
+    value = jnp.asarray(value, dtype=float)
+    if value.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {value.shape}.")
+    check_finite(name, value)
+    return value
+

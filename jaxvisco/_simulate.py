@@ -1,0 +1,270 @@
+"""The whole time loop as one compiled program.
+
+`simulate` parses the schedule on the host, then runs one `lax.while_loop` over all
+steps (compile time does not depend on their number). Each nominal step is advanced by
+an inner loop that halves the step after a failed Newton solve and grows back after
+successes; a step that cannot be recovered ends the run with the last good state.
+"""
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._newton import NewtonKrylov, solve_step
+from ._scene import Scene, State
+from ._schedule import step_sizes
+from ._step import end_state, end_velocity, external_work, make_context, predictor, step_dissipation
+from ._tangent import empty_tangent
+from ._tensor import small_solve
+from ._time_element import AbstractTimeElement
+
+RUNNING, FAILED, EQUILIBRIUM, DONE = 0, 1, 2, 3
+STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done"}
+
+
+class SolverError(RuntimeError):
+    """A time step could not be solved even at the smallest allowed step size.
+
+    **Attributes:** `t` (time of the last good state), `state` (that `State`),
+    `solution` (everything saved up to it).
+    """
+
+    def __init__(self, message, t, state, solution):
+        super().__init__(message)
+        self.t, self.state, self.solution = t, state, solution
+
+
+class Solution(eqx.Module):
+    """Saved frames and per-step solver statistics of a run.
+
+    Frames (leading axis = saved frame): `t`, `x`, `p`, `gamma` (if asked), `energy` (H),
+    `kinetic`, `free_energy`, `dissipated` (cumulative dissipation of the scheme),
+    `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`.
+    Steps: `step_t` (end time), `step_h`, `newton_iterations`, `krylov_iterations`,
+    `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
+    one of "done", "equilibrium", "failed".
+    """
+
+    t: jax.Array
+    x: jax.Array
+    p: jax.Array
+    gamma: Optional[jax.Array]
+    energy: jax.Array
+    kinetic: jax.Array
+    free_energy: jax.Array
+    dissipated: jax.Array
+    dissipation_rate: jax.Array
+    external_work: jax.Array
+    linear_momentum: jax.Array
+    angular_momentum: jax.Array
+    step_t: jax.Array
+    step_h: jax.Array
+    newton_iterations: jax.Array
+    krylov_iterations: jax.Array
+    residual: jax.Array
+    rejections: jax.Array
+    n_saved: jax.Array
+    n_steps: jax.Array
+    status_code: jax.Array
+    integrator: str = eqx.field(static=True, default="")
+
+    @property
+    def status(self):
+        return STATUS[int(self.status_code)]
+
+    def trimmed(self):
+        """Drop the unused tail of the preallocated buffers (host side)."""
+        ns, nt = int(self.n_saved), int(self.n_steps)
+        frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
+                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
+        steps = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "residual", "rejections")
+        out = self
+        for name in frames:
+            if getattr(self, name) is not None:
+                out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:ns])
+        for name in steps:
+            out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:nt])
+        return out
+
+    def state(self, i=-1) -> State:
+        return State(self.x[i], self.p[i], None if self.gamma is None else self.gamma[i])
+
+
+def relative_kinetic_energy(scene: Scene, x, p):
+    """Kinetic energy relative to the best-fitting rigid motion (mass-weighted)."""
+    v = scene.velocity(p)
+    T = 0.5 * jnp.vdot(p, v)
+    c = jnp.mean(x, axis=0)
+    r = x - c
+    d = x.shape[-1]
+    modes = [jnp.zeros_like(x).at[:, i].set(1.0) for i in range(d)]
+    if d == 2:
+        modes.append(jnp.stack([-r[:, 1], r[:, 0]], -1))
+    else:
+        for axis in range(3):
+            e = jnp.zeros(3).at[axis].set(1.0)
+            modes.append(jnp.cross(e, r))
+    R = jnp.stack(modes)  # (m, n, d)
+    MR = jax.vmap(lambda u: scene.disc.mass_matvec(u, scene.density))(R)
+    G = jnp.einsum("and,bnd->ab", R, MR)
+    b = jnp.einsum("and,nd->a", R, p)
+    return T - 0.5 * jnp.dot(b, small_solve(G, b))
+
+
+def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, save_every=1,
+             solver: NewtonKrylov = NewtonKrylov(), save_gamma=False, stop_at_equilibrium=None,
+             max_halvings=6, initial_state: Optional[State] = None, throw=True) -> Solution:
+    """Integrate a scene in time.
+
+    **Arguments:**
+    - `scene`, `integrator` (`cG(k)`, `eG(k)`, `Midpoint()`, `Newmark()`).
+    - `t_end`, `t0`; `dt`: a step or a schedule `[(t_until, dt), ...]` (piecewise
+      constant, e.g. `[(20.0, 0.1), (40.0, 0.5)]`).
+    - `save_every`: keep every n-th step (the last step is always kept).
+    - `solver`: `NewtonKrylov(...)` settings.
+    - `save_gamma`: also keep the internal variable at the saved frames.
+    - `stop_at_equilibrium`: a tolerance `tol`; the run ends once the kinetic energy
+      relative to the rigid-body motion and the step's dissipated energy both fall
+      below `tol * H_0`.
+    - `max_halvings`: how often a failed step may be halved before the run stops.
+    - `initial_state`: start from this `State` instead of the scene's (restarts).
+    - `throw`: raise `SolverError` on failure (else return with `status == "failed"`).
+
+    **Returns:** a `Solution` (trimmed to the saved frames when called outside `jit`).
+    """
+    if not isinstance(integrator, AbstractTimeElement):
+        raise TypeError(f"integrator must be cG(k), eG(k), Midpoint() or Newmark(), got {integrator!r}.")
+    if isinstance(save_every, bool) or not isinstance(save_every, (int, np.integer)) or save_every < 1:
+        raise ValueError(f"save_every must be an integer >= 1, got {save_every!r}.")
+    if stop_at_equilibrium is not None and not (float(stop_at_equilibrium) > 0):
+        raise ValueError(f"stop_at_equilibrium must be a positive tolerance or None, got {stop_at_equilibrium!r}.")
+    if not isinstance(max_halvings, (int, np.integer)) or not 0 <= max_halvings <= 30:
+        raise ValueError(f"max_halvings must be an integer in [0, 30], got {max_halvings!r}.")
+    hs = step_sizes(t0, t_end, dt)
+    state0 = scene.initial_state() if initial_state is None else initial_state
+    sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs),
+               int(save_every), bool(save_gamma),
+               None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
+               int(max_halvings))
+    if isinstance(sol.n_saved, jax.core.Tracer):
+        return sol
+    sol = sol.trimmed()
+    if sol.status == "failed" and throw:
+        t = float(sol.t[-1])
+        raise SolverError(
+            f"{integrator.name}: the step after t = {t:.6g} did not converge even after "
+            f"{max_halvings} halvings; the last good state is attached (SolverError.state).",
+            t, sol.state(-1), sol)
+    return sol
+
+
+@eqx.filter_jit
+def _run(scene, scheme, solver, state0, t0, hs, save_every, save_gamma, eq_tol, max_halvings):
+    n_steps = hs.shape[0]
+    n_frames = 1 + -(-n_steps // save_every)
+    diag0 = scene.diagnostics(state0)
+    H0 = diag0["energy"]
+    full = 2**max_halvings
+
+    def frame_buffers():
+        def buf(v):
+            v = jnp.asarray(v)
+            return jnp.zeros((n_frames,) + v.shape, v.dtype)
+        out = dict(t=buf(t0), x=buf(state0.x), p=buf(state0.p),
+                   gamma=buf(state0.gamma) if (save_gamma and state0.gamma is not None) else None,
+                   dissipated=buf(0.0), external_work=buf(0.0))
+        out.update({k: buf(v) for k, v in diag0.items()})
+        return out
+
+    def write(frames, idx, t, state, diag, dissipated, work):
+        vals = dict(t=t, x=state.x, p=state.p, dissipated=dissipated, external_work=work, **diag)
+        if frames["gamma"] is not None:
+            vals["gamma"] = state.gamma
+        return {k: (None if b is None else b.at[idx].set(vals[k])) for k, b in frames.items()}
+
+    def advance(state, t, h, v, tan):
+        """One nominal step, halved on failure (dyadic sub-steps)."""
+
+        def cond(c):
+            return (c["pos"] < full) & ~c["failed"]
+
+        def body(c):
+            hs_ = h / (2.0 ** c["level"])
+            ctx = make_context(scene, c["state"], c["t"], hs_)
+            r = solve_step(solver, scheme, scene, ctx, predictor(scheme, ctx, c["v"]), c["tan"])
+            new = end_state(scheme, scene, ctx, r.U)
+            D = step_dissipation(scheme, scene, ctx, r.U)
+            W = external_work(scheme, scene, ctx, r.U)
+            finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.p)) & jnp.isfinite(D)
+            if new.gamma is not None:
+                finite = finite & jnp.all(jnp.isfinite(new.gamma))
+            ok = r.converged & finite
+            pick = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(ok, x, y), a, b)  # noqa: E731
+            pos = c["pos"] + jnp.where(ok, jnp.right_shift(full, c["level"]), 0)
+            # Grow back once the position is aligned with the coarser grid.
+            coarser = jnp.right_shift(full, jnp.maximum(c["level"] - 1, 0))
+            level = jnp.where(ok, jnp.where((c["level"] > 0) & (pos % coarser == 0), c["level"] - 1, c["level"]),
+                              c["level"] + 1)
+            return dict(
+                state=pick(new, c["state"]), t=jnp.where(ok, c["t"] + hs_, c["t"]),
+                v=pick(end_velocity(scheme, ctx, r.U), c["v"]), tan=r.tangent, level=level, pos=pos,
+                its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
+                rej=c["rej"] + jnp.where(ok, 0, 1), D=c["D"] + jnp.where(ok, D, 0.0),
+                W=c["W"] + jnp.where(ok, W, 0.0), res=jnp.maximum(c["res"], jnp.where(ok, r.residual, 0.0)),
+                failed=level > max_halvings,
+            )
+
+        init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0),
+                    its=jnp.asarray(0), kits=jnp.asarray(0), rej=jnp.asarray(0), D=jnp.asarray(0.0),
+                    W=jnp.asarray(0.0), res=jnp.asarray(0.0), failed=jnp.asarray(False))
+        return jax.lax.while_loop(cond, body, init)
+
+    def cond(c):
+        return (c["i"] < n_steps) & (c["status"] == RUNNING)
+
+    def body(c):
+        i = c["i"]
+        a = advance(c["state"], c["t"], hs[i], c["v"], c["tan"])
+        failed = a["failed"]
+        dissipated, work = c["dissipated"] + a["D"], c["work"] + a["W"]
+        status = jnp.where(failed, FAILED, RUNNING)
+        if eq_tol is not None:
+            at_rest = (relative_kinetic_energy(scene, a["state"].x, a["state"].p) <= eq_tol * H0) & (
+                a["D"] <= eq_tol * H0)
+            status = jnp.where((status == RUNNING) & at_rest, EQUILIBRIUM, status)
+        status = jnp.where((status == RUNNING) & (i == n_steps - 1), DONE, status)
+        save = ((i + 1) % save_every == 0) | (status != RUNNING)
+        save = save & ~failed
+
+        def do_save(frames):
+            return write(frames, c["n_saved"], a["t"], a["state"], scene.diagnostics(a["state"]), dissipated, work)
+
+        frames = jax.lax.cond(save, do_save, lambda f: f, c["frames"])
+        steps = c["steps"]
+        steps = dict(step_t=steps["step_t"].at[i].set(a["t"]), step_h=steps["step_h"].at[i].set(hs[i]),
+                     newton_iterations=steps["newton_iterations"].at[i].set(a["its"]),
+                     krylov_iterations=steps["krylov_iterations"].at[i].set(a["kits"]),
+                     residual=steps["residual"].at[i].set(a["res"]),
+                     rejections=steps["rejections"].at[i].set(a["rej"]))
+        return dict(i=i + 1, state=a["state"], t=a["t"], v=a["v"], tan=a["tan"], frames=frames, steps=steps,
+                    n_saved=c["n_saved"] + save.astype(int), dissipated=dissipated, work=work, status=status,
+                    n_done=c["n_done"] + (~failed).astype(int))
+
+    frames = write(frame_buffers(), 0, t0, state0, diag0, jnp.asarray(0.0), jnp.asarray(0.0))
+    zeros_f, zeros_i = jnp.zeros(n_steps), jnp.zeros(n_steps, dtype=int)
+    steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i,
+                 residual=zeros_f, rejections=zeros_i)
+    init = dict(i=jnp.asarray(0), state=state0, t=t0, v=scene.velocity(state0.p), tan=empty_tangent(scheme, scene),
+                frames=frames, steps=steps, n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
+                work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))
+    c = jax.lax.while_loop(cond, body, init)
+    f = c["frames"]
+    return Solution(
+        t=f["t"], x=f["x"], p=f["p"], gamma=f["gamma"], energy=f["energy"], kinetic=f["kinetic"],
+        free_energy=f["free_energy"], dissipated=f["dissipated"], dissipation_rate=f["dissipation_rate"],
+        external_work=f["external_work"], linear_momentum=f["linear_momentum"],
+        angular_momentum=f["angular_momentum"], n_saved=c["n_saved"], n_steps=c["n_done"],
+        status_code=c["status"], integrator=scheme.describe(), **c["steps"])

@@ -1,0 +1,125 @@
+"""Total Lagrangian finite elements: the semi-discrete operators (THEORY §2).
+
+Everything here is written for all elements and quadrature points at once (gather,
+`einsum`, scatter-add); nothing knows about time stepping.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._tensor import det3
+
+
+class StaticArray:
+    """A numpy array usable as an equinox static field (hashable by content).
+
+    Mesh connectivity is structure, not data: it fixes gather/scatter patterns and the
+    sparsity of assembled tangents, and must be known when the program is traced.
+    """
+
+    def __init__(self, array):
+        self.array = np.asarray(array)
+        self.array.setflags(write=False)
+        self._hash = hash((self.array.shape, self.array.dtype.str, self.array.tobytes()))
+
+    def __hash__(self):
+        return self._hash
+
+    def __eq__(self, other):
+        return (
+            isinstance(other, StaticArray)
+            and self._hash == other._hash
+            and self.array.shape == other.array.shape
+            and np.array_equal(self.array, other.array)
+        )
+
+
+def embed_3d(F_d):
+    """Embed a (..., d, d) gradient into (..., 3, 3); plane strain has F33 = 1."""
+    d = F_d.shape[-1]
+    if d == 3:
+        return F_d
+    F = jnp.zeros(F_d.shape[:-2] + (3, 3), dtype=F_d.dtype)
+    return F.at[..., :d, :d].set(F_d).at[..., 2, 2].set(1.0)
+
+
+class Discretization(eqx.Module):
+    """Quadrature data of a mesh, ready for the vectorized kernels.
+
+    **Fields:** `N` (nq, n_en) shape values, `dN` (n_cells, nq, n_en, dim) reference
+    gradients $\\nabla_X N$, `JxW` (n_cells, nq) quadrature weights times $\\det J$
+    (thickness 1 in plane strain), `mass_el` (n_cells, n_en, n_en) element mass matrices
+    for unit density; `cells` (static) the connectivity.
+    """
+
+    N: jax.Array
+    dN: jax.Array
+    JxW: jax.Array
+    mass_el: jax.Array
+    cells: StaticArray = eqx.field(static=True)
+    n_nodes: int = eqx.field(static=True)
+    dim: int = eqx.field(static=True)
+
+    def __init__(self, mesh, order=None):
+        qd = mesh.quadrature_data(order)
+        self.N = jnp.asarray(qd.N)
+        self.dN = jnp.asarray(qd.dN_dX)
+        self.JxW = jnp.asarray(qd.JxW)
+        self.mass_el = jnp.einsum("eq,qa,qb->eab", self.JxW, self.N, self.N)
+        self.cells = StaticArray(np.asarray(mesh.cells))
+        self.n_nodes = int(mesh.n_nodes)
+        self.dim = int(mesh.dim)
+
+    @property
+    def n_cells(self):
+        return self.cells.array.shape[0]
+
+    @property
+    def n_qp(self):
+        return self.N.shape[0]
+
+    # -- gather / scatter ----------------------------------------------------------
+    def gather(self, u):
+        """Nodal field (..., n_nodes, c) -> element arrays (..., n_cells, n_en, c)."""
+        return u[..., self.cells.array, :]
+
+    def scatter(self, u_el):
+        """Element arrays (..., n_cells, n_en, c) -> summed nodal field (..., n_nodes, c)."""
+        lead = u_el.shape[:-3]
+        out = jnp.zeros(lead + (self.n_nodes, u_el.shape[-1]), dtype=u_el.dtype)
+        return out.at[..., self.cells.array, :].add(u_el)
+
+    # -- kinematics and forces -----------------------------------------------------
+    def deformation_gradient(self, x):
+        """Positions (..., n_nodes, d) -> F at every quadrature point (..., n_cells, nq, 3, 3)."""
+        return embed_3d(jnp.einsum("...eai,eqaJ->...eqiJ", self.gather(x), self.dN))
+
+    def force(self, P):
+        """Nodal forces $f_A = \\sum_{qp} w\\, P \\nabla_X N_A$ of first Piola–Kirchhoff
+        stresses P (..., n_cells, nq, 3, 3)."""
+        d = self.dim
+        f_el = jnp.einsum("eq,...eqiJ,eqaJ->...eai", self.JxW, P[..., :d, :d], self.dN)
+        return self.scatter(f_el)
+
+    def integrate(self, f_qp):
+        """$\\int f\\,dV$ of a quadrature-point field (..., n_cells, nq)."""
+        return jnp.sum(f_qp * self.JxW, axis=(-2, -1))
+
+    # -- mass ----------------------------------------------------------------------
+    def mass_matvec(self, v, density):
+        """Consistent mass times a nodal field: $(Mv)_A = \\int\\rho N_A N_B v_B$."""
+        return density * self.scatter(jnp.einsum("eab,...ebi->...eai", self.mass_el, self.gather(v)))
+
+    def mass_diagonal(self, density):
+        """Diagonal of the consistent mass matrix (n_nodes,)."""
+        diag_el = jnp.diagonal(self.mass_el, axis1=-2, axis2=-1)[..., None]
+        return density * self.scatter(diag_el)[:, 0]
+
+    def volume(self):
+        return jnp.sum(self.JxW)
+
+    def min_jacobian(self, x):
+        """Smallest det F over all quadrature points (inversion check)."""
+        return jnp.min(det3(self.deformation_gradient(x)))

@@ -1,0 +1,140 @@
+"""One time element over the whole mesh: unknowns, residual, dissipation, predictor.
+
+Unknowns of a step are the positions at the k new time nodes and, where the material
+has a viscous branch, the internal variable at the k new nodes and every spatial
+quadrature point (6 Voigt components). The nodal momenta are eliminated exactly (they
+follow linearly from the weak form of $M\\dot x = p$; see `time_element_matrices`), so
+the momentum equations become a system in positions, like Newmark's in displacements.
+"""
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._scene import Scene, State
+from ._tensor import sym_to_vec, vec_to_sym
+
+
+class Unknowns(eqx.Module):
+    x: jax.Array  # (k, n_nodes, dim)
+    g: Optional[jax.Array]  # (k, n_cells, nq, 6) or None
+
+
+class StepContext(eqx.Module):
+    """What is known when a step starts."""
+
+    state: State
+    t0: jax.Array
+    h: jax.Array
+    F0: jax.Array  # deformation gradient at the start (n_cells, nq, 3, 3)
+
+
+def make_context(scene: Scene, state: State, t0, h) -> StepContext:
+    return StepContext(state, jnp.asarray(t0, float), jnp.asarray(h, float),
+                       scene.disc.deformation_gradient(state.x))
+
+
+def nodal_fields(scheme, scene, ctx, U):
+    """Positions (k+1, n, d), deformation gradients and internal variables at the time
+    nodes of every spatial quadrature point (n_cells, nq, k+1, 3, 3)."""
+    X = jnp.concatenate([ctx.state.x[None], U.x], axis=0)
+    F = jnp.concatenate([ctx.F0[None], scene.disc.deformation_gradient(U.x)], axis=0)
+    F = jnp.moveaxis(F, 0, 2)
+    if U.g is None:
+        return X, F, None
+    G = jnp.concatenate([ctx.state.gamma[None], vec_to_sym(U.g)], axis=0)
+    return X, F, jnp.moveaxis(G, 0, 2)
+
+
+def _over_points(fn, F, G):
+    """vmap a point function over (n_cells, nq)."""
+    if G is None:
+        return jax.vmap(jax.vmap(lambda f: fn(f, None)))(F)
+    return jax.vmap(jax.vmap(fn))(F, G)
+
+
+def momenta(scheme, scene, ctx, X):
+    """Nodal momenta at the k new time nodes, from the weak form of $M\\dot x = p$."""
+    m, _ = scheme.matrices()
+    MX = scene.disc.mass_matvec(X, scene.density)
+    return (jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["Pm"]), MX) / ctx.h
+            + jnp.asarray(m["Pp"])[:, None, None] * ctx.state.p[None])
+
+
+def force_term(scheme, scene, ctx, P):
+    """$h \\sum_l W_{Jl} f_{int}(P_l)$ for stresses P (n_cells, nq, nq_t, 3, 3)."""
+    m, _ = scheme.matrices()
+    f = scene.disc.force(jnp.moveaxis(P, 2, 0))  # (nq_t, n, d)
+    return ctx.h * jnp.einsum("Jl,lnd->Jnd", jnp.asarray(m["W"]), f)
+
+
+def external_term(scheme, scene, ctx):
+    m, _ = scheme.matrices()
+    if scene.load is None:
+        return None
+    ts = ctx.t0 + ctx.h * jnp.asarray(m["points"])
+    fext = jax.vmap(scene.external_force)(ts)
+    return ctx.h * jnp.einsum("Jl,lnd->Jnd", jnp.asarray(m["W"]), fext)
+
+
+def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
+    """Weak residual of the time element: momentum equations (k, n, d) in units of
+    momentum, evolution law (k, n_cells, nq, 6) dimensionless."""
+    m, _ = scheme.matrices()
+    X, F, G = nodal_fields(scheme, scene, ctx, U)
+    P, R_G = _over_points(lambda f, g: scheme.point_kernel(scene.material, f, g, ctx.h), F, G)
+    MX = scene.disc.mass_matvec(X, scene.density)
+    R_x = (jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["A"]), MX) / ctx.h
+           + jnp.asarray(m["b"])[:, None, None] * ctx.state.p[None]
+           + force_term(scheme, scene, ctx, P))
+    ext = external_term(scheme, scene, ctx)
+    if ext is not None:
+        R_x = R_x - ext
+    return Unknowns(R_x, None if R_G is None else jnp.moveaxis(R_G, 2, 0))
+
+
+def step_dissipation(scheme, scene, ctx, U):
+    """The scheme's dissipated energy over the step, $D_n$."""
+    _, F, G = nodal_fields(scheme, scene, ctx, U)
+    if G is None:
+        return jnp.zeros((), dtype=ctx.h.dtype)
+    d = _over_points(lambda f, g: scheme.point_dissipation(scene.material, f, g, ctx.h), F, G)
+    return scene.disc.integrate(d)
+
+
+def external_work(scheme, scene, ctx, U):
+    """Work of the dead loads over the step, $\\int x_h' \\cdot f_{ext} d\\alpha$."""
+    if scene.load is None:
+        return jnp.zeros((), dtype=ctx.h.dtype)
+    m, _ = scheme.matrices()
+    X = jnp.concatenate([ctx.state.x[None], U.x], axis=0)
+    Xd = jnp.einsum("lI,Ind->lnd", jnp.asarray(m["D"]), X)
+    ts = ctx.t0 + ctx.h * jnp.asarray(m["points"])
+    fext = jax.vmap(scene.external_force)(ts)
+    return jnp.sum(jnp.asarray(m["weights"])[:, None, None] * Xd * fext)
+
+
+def end_state(scheme, scene, ctx, U) -> State:
+    p_new = momenta(scheme, scene, ctx, jnp.concatenate([ctx.state.x[None], U.x], axis=0))
+    gamma = None if U.g is None else vec_to_sym(U.g[-1])
+    return State(U.x[-1], p_new[-1], gamma)
+
+
+def end_velocity(scheme, ctx, U):
+    """$x_h'(1)/h$: a cheap velocity estimate for the next predictor."""
+    m, _ = scheme.matrices()
+    X = jnp.concatenate([ctx.state.x[None], U.x], axis=0)
+    return jnp.einsum("I,Ind->nd", jnp.asarray(m["D_end"]), X) / ctx.h
+
+
+def predictor(scheme, ctx, velocity) -> Unknowns:
+    """Uniform motion for positions, frozen internal variable."""
+    m, _ = scheme.matrices()
+    alpha = jnp.asarray(m["nodes"][1:])
+    x = ctx.state.x[None] + alpha[:, None, None] * ctx.h * velocity[None]
+    g = None
+    if ctx.state.gamma is not None:
+        g = jnp.broadcast_to(sym_to_vec(ctx.state.gamma)[None], (len(alpha),) + ctx.state.gamma.shape[:-2] + (6,))
+    return Unknowns(x, g)

@@ -1,0 +1,138 @@
+"""The condensed tangent of a time element and its exact block solve.
+
+The Jacobian of the step residual has a position block and an internal-variable block
+that is block diagonal over spatial quadrature points (Γ is local). At every quadrature
+point the local block is inverted in closed loops of array arithmetic and condensed into
+the stress sensitivity, exactly as a consistent algorithmic tangent in a
+return-mapping code:
+
+    dP/dF|total = ∂P/∂F + ∂P/∂Γ · dΓ/dF,   dΓ/dF = -(∂R_Γ/∂Γ)^{-1} ∂R_Γ/∂F.
+
+The position block (the Schur complement) is assembled element by element into one
+sparse matrix (pattern fixed per mesh and degree) and factored on the host. `schur_solve`
+then solves the full linearized system exactly at the point where the tangent was
+formed; away from it, it is the preconditioner of the Krylov solver.
+"""
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._sparse import HostLU, lu_factor, lu_solve
+from ._step import Unknowns, nodal_fields
+from ._tensor import small_inv, vec_to_sym
+
+
+@functools.lru_cache(maxsize=32)
+def position_pattern(cells, k, n_nodes, dim):
+    """Host factorization object for the (k n d)^2 position block of a mesh."""
+    c = cells.array
+    J = np.arange(k)[:, None, None]
+    i = np.arange(dim)[None, None, :]
+    dofs = (J * n_nodes * dim)[None] + c[:, None, :, None] * dim + i[None]  # (e, k, n_en, d)
+    dofs = dofs.reshape(c.shape[0], -1)
+    rows = np.broadcast_to(dofs[:, :, None], dofs.shape + (dofs.shape[1],))
+    cols = np.broadcast_to(dofs[:, None, :], rows.shape)
+    return HostLU(rows, cols, k * n_nodes * dim)
+
+
+class Tangent(eqx.Module):
+    token: jax.Array  # host LU of the position block (-1: none)
+    h: jax.Array  # step the tangent was formed for
+    stale: jax.Array  # re-form before the next use
+    Ainv: jax.Array | None  # (n_cells, nq, 6k, 6k) inverse local block
+    dG_dF: jax.Array | None  # (n_cells, nq, 6k, 9k)
+    dP_dG: jax.Array | None  # (n_cells, nq, nq_t*9, 6k)
+
+
+def empty_tangent(scheme, scene):
+    k = scheme.k
+    nq_t = len(scheme.matrices()[0]["points"])
+    if not scene.has_internal_variable:
+        return Tangent(jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True), None, None, None)
+    ne, nq = scene.disc.n_cells, scene.disc.n_qp
+    z = functools.partial(jnp.zeros, dtype=float)
+    return Tangent(jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True),
+                   z((ne, nq, 6 * k, 6 * k)), z((ne, nq, 6 * k, 9 * k)), z((ne, nq, nq_t * 9, 6 * k)))
+
+
+def _point_tangent(scheme, material, h, F, G):
+    """Condensed sensitivities at one spatial point (F, G at the k+1 time nodes)."""
+    k = scheme.k
+    F0, Fu = F[0], F[1:]
+
+    if G is None:
+        def fun(Fu):
+            P, _ = scheme.point_kernel(material, jnp.concatenate([F0[None], Fu]), None, h)
+            return P
+        dP_dF = jax.jacfwd(fun)(Fu)
+        return dP_dF.reshape(-1, 9 * k), None, None, None
+
+    G0 = G[0]
+    gu = jnp.stack([jnp.stack([G[I, 0, 0], G[I, 1, 1], G[I, 2, 2], G[I, 1, 2], G[I, 0, 2], G[I, 0, 1]])
+                    for I in range(1, k + 1)])
+
+    def fun(Fu, gu):
+        return scheme.point_kernel(material, jnp.concatenate([F0[None], Fu]),
+                                   jnp.concatenate([G0[None], vec_to_sym(gu)]), h)
+
+    (dP_dF, dP_dg), (dR_dF, dR_dg) = jax.jacfwd(fun, argnums=(0, 1))(Fu, gu)
+    nP = dP_dF.shape[0] * 9
+    Ainv = small_inv(dR_dg.reshape(6 * k, 6 * k))
+    dG_dF = -Ainv @ dR_dF.reshape(6 * k, 9 * k)
+    dP_dg = dP_dg.reshape(nP, 6 * k)
+    dP_dF_total = dP_dF.reshape(nP, 9 * k) + dP_dg @ dG_dF
+    return dP_dF_total, Ainv, dG_dF, dP_dg
+
+
+def form_tangent(scheme, scene, ctx, U) -> Tangent:
+    """Condensed tangent at U: local inverses, sensitivities, and the factored position
+    block $A \\otimes M / h + h\\,\\sum_l W K_l$ (exact, with Γ eliminated)."""
+    m, _ = scheme.matrices()
+    k, d, disc = scheme.k, scene.dim, scene.disc
+    _, F, G = nodal_fields(scheme, scene, ctx, U)
+    point = functools.partial(_point_tangent, scheme, scene.material, ctx.h)
+    if G is None:
+        dPdF, Ainv, dGdF, dPdG = jax.vmap(jax.vmap(lambda f: point(f, None)))(F)
+    else:
+        dPdF, Ainv, dGdF, dPdG = jax.vmap(jax.vmap(point))(F, G)
+    ne, nq = disc.n_cells, disc.n_qp
+    nq_t = dPdF.shape[2] // 9
+    dPdF = dPdF.reshape(ne, nq, nq_t, 3, 3, k, 3, 3)[:, :, :, :d, :d, :, :d, :d]
+    W = jnp.asarray(m["W"])
+    # K[e, J, a, i, I, b, j] = h sum_q JxW sum_l W[J,l] dN[a,A] dPdF[l,i,A,I,j,B] dN[b,B]
+    K = ctx.h * jnp.einsum("eq,Jl,eqaA,eqliAIjB,eqbB->eJaiIbj", disc.JxW, W, disc.dN, dPdF, disc.dN)
+    A = jnp.asarray(m["A"])[:, 1:]
+    Mass = scene.density * jnp.einsum("JI,eab,ij->eJaiIbj", A, disc.mass_el, jnp.eye(d)) / ctx.h
+    Ke = (K + Mass).reshape(ne, -1)
+    host = position_pattern(disc.cells, k, disc.n_nodes, d)
+    token = lu_factor(host, Ke)
+    return Tangent(token, ctx.h, jnp.asarray(False), Ainv, dGdF, dPdG)
+
+
+def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns) -> Unknowns:
+    """Solve the linearized step equations with the condensed tangent (exact where the
+    tangent was formed)."""
+    from ._step import force_term
+
+    k, d, disc = scheme.k, scene.dim, scene.disc
+    host = position_pattern(disc.cells, k, disc.n_nodes, d)
+    bx = b.x
+    if b.g is not None:
+        bg = jnp.moveaxis(b.g, 0, 2).reshape(disc.n_cells, disc.n_qp, 6 * k)
+        z = jnp.einsum("eqab,eqb->eqa", tangent.Ainv, bg)
+        dP = jnp.einsum("eqab,eqb->eqa", tangent.dP_dG, z)
+        dP = dP.reshape(disc.n_cells, disc.n_qp, -1, 3, 3)
+        bx = bx - force_term(scheme, scene, ctx, dP)
+    dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
+    if b.g is None:
+        return Unknowns(dx, None)
+    dF = jnp.moveaxis(disc.deformation_gradient(dx), 0, 2)  # (e, q, k, 3, 3) ; F33 row of dx is 1
+    if d == 2:
+        dF = dF.at[..., 2, 2].set(0.0)
+    dg = z + jnp.einsum("eqab,eqb->eqa", tangent.dG_dF, dF.reshape(disc.n_cells, disc.n_qp, 9 * k))
+    dg = jnp.moveaxis(dg.reshape(disc.n_cells, disc.n_qp, k, 6), 2, 0)
+    return Unknowns(dx, dg)

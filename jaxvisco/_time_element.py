@@ -1,0 +1,216 @@
+"""Time finite elements on [t_n, t_n + h]: cG(k), eG(k) and two baselines (THEORY §3).
+
+A scheme is described by its degree k and its time quadrature. Everything it does at one
+spatial quadrature point lives in `point_kernel`: given the deformation gradients and
+internal variables at the k+1 time nodes it returns the first Piola–Kirchhoff stresses
+that enter the weak momentum balance at the time quadrature points, and the weak
+residual of the evolution law. The spatial assembly (`residual`) is shared by all.
+"""
+
+import abc
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._quadrature import gauss_legendre
+from ._tensor import ddot, sym, sym_to_vec, vec_to_sym
+from ._time_basis import time_element_matrices
+
+# Added to the denominator of eG's algorithmic factor beta: squared strain increments
+# below this are rounding noise. It bounds S_alg where a point is at rest and changes
+# the energy balance only by (this / increment^2) of a defect that is itself O(eps).
+_BETA_FLOOR = 1e-24
+
+
+class AbstractTimeElement(eqx.Module):
+    """A time-element scheme. Subclasses fix the degree and quadrature."""
+
+    k: eqx.AbstractVar[int]
+    n_quad: eqx.AbstractVar[int]
+
+    @abc.abstractmethod
+    def _rules(self):
+        """((points, weights) of the momentum equations, (points, weights) of the
+        evolution law), as tuples."""
+
+    @property
+    def enhanced(self) -> bool:
+        return isinstance(self, eG)
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__ if isinstance(self, (Newmark, Midpoint)) else f"{type(self).__name__}({self.k})"
+
+    def describe(self) -> str:
+        (pts, _), (gpts, _) = self._rules()
+        rule = "trapezoidal" if isinstance(self, Newmark) else f"{len(pts)}-point Gauss-Legendre"
+        extra = ", internal variable by the midpoint rule" if isinstance(self, Newmark) else ""
+        return f"{self.name}, time quadrature: {rule}{extra}"
+
+    def matrices(self):
+        (pts, wts), (gpts, gwts) = self._rules()
+        return time_element_matrices(self.k, pts, wts), time_element_matrices(self.k, gpts, gwts)
+
+    # -- the scheme at one spatial quadrature point ---------------------------------
+    def point_kernel(self, material, F, G, h):
+        """**Arguments:** `F` (k+1, 3, 3) and `G` (k+1, 3, 3) or None at the time nodes,
+        step `h`. **Returns:** `(P, R_G)`: stresses P = F S (nq_t, 3, 3) at the momentum
+        quadrature points, and the weak evolution residual (k, 6) (None if elastic)."""
+        m, mg = self.matrices()
+        V = jnp.asarray(m["V"])
+        Fl = jnp.einsum("lI,Iij->lij", V, F)
+        Gl = None if G is None else jnp.einsum("lI,Iij->lij", V, G)
+        if self.enhanced:
+            e = self._enhanced_terms(material, F, G)
+            Cl, S = e["Cbar"], e["S"] + 2.0 * e["beta"] * e["Cd"]
+        else:
+            Cl = _cauchy_green(Fl)
+            S = jax.vmap(material.stress)(Cl, Gl) if G is not None else jax.vmap(material.stress)(Cl)
+        P = Fl @ S
+        if G is None:
+            return P, None
+        if mg is m:
+            Cg, Gg = Cl, Gl
+        else:  # a separate rule for the evolution law (Newmark's midpoint)
+            Vg = jnp.asarray(mg["V"])
+            Cg = _cauchy_green(jnp.einsum("mI,Iij->mij", Vg, F))
+            Gg = jnp.einsum("mI,Iij->mij", Vg, G)
+        Gd = jnp.einsum("mI,Iij->mij", jnp.asarray(mg["D"]), G)
+        rate = jax.vmap(material.gamma_rate)(Cg, Gg)
+        R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), Gd - h * rate)
+        return P, sym_to_vec(R_G)
+
+    def _enhanced_terms(self, material, F, G):
+        """eG at one spatial point: stresses at the assumed strains
+        $\\bar C = \\sum M_I C_I$ and the factor beta of the algorithmic correction.
+
+        The correction is the least-squares smallest pair
+        $(S_{alg}, Y_{alg}) = (2\\beta C', 4\\beta\\Gamma')$ that closes the energy defect
+        $G = \\Delta\\Psi - \\int [\\bar S : C'/2 + \\partial_\\Gamma\\Psi : \\Gamma'] d\\alpha$. With no
+        internal variable this is the paper's $S_{alg} = 2 G C' / \\int\\|C'\\|^2$; with one,
+        a point at rest that still relaxes ($C' = 0$) puts the defect on $\\Gamma'$
+        instead of dividing by zero (THEORY §3, second point).
+        """
+        m, _ = self.matrices()
+        V, D, w = (jnp.asarray(m[key]) for key in ("V", "D", "weights"))
+        CI = _cauchy_green(F)
+        Cbar = jnp.einsum("lI,Iij->lij", V, CI)
+        Fl = jnp.einsum("lI,Iij->lij", V, F)
+        Cd = 2.0 * sym(jnp.swapaxes(Fl, -1, -2) @ jnp.einsum("lI,Iij->lij", D, F))
+        ends = jnp.array([0, -1])
+        if G is None:
+            S = jax.vmap(material.stress)(Cbar)
+            psi = jax.vmap(material.free_energy)(CI[ends])
+            power = jnp.sum(w * ddot(S, Cd)) / 2.0
+            den = jnp.sum(w * ddot(Cd, Cd))
+            Gl = Gd = dpsi_dG = None
+        else:
+            Gl = jnp.einsum("lI,Iij->lij", V, G)
+            Gd = jnp.einsum("lI,Iij->lij", D, G)
+            S = jax.vmap(material.stress)(Cbar, Gl)
+            dpsi_dG = jax.vmap(material.energy_gradient_gamma)(Cbar, Gl)
+            psi = jax.vmap(material.free_energy)(CI[ends], G[ends])
+            power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(w * ddot(dpsi_dG, Gd))
+            den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(w * ddot(Gd, Gd))
+        beta = (psi[1] - psi[0] - power) / (den + _BETA_FLOOR)
+        return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, dpsi_dG=dpsi_dG, beta=beta, w=w)
+
+    def point_dissipation(self, material, F, G, h):
+        """Energy dissipated at one spatial point over the step (per reference volume).
+
+        eG: $-\\int (\\partial_\\Gamma\\Psi + Y_{alg}) : \\Gamma_h' d\\alpha$, which closes
+        the discrete energy balance exactly; otherwise the time quadrature of the
+        physical dissipation rate.
+        """
+        if G is None:
+            return jnp.zeros((), dtype=F.dtype)
+        m, mg = self.matrices()
+        if self.enhanced:
+            e = self._enhanced_terms(material, F, G)
+            return -jnp.sum(e["w"] * ddot(e["dpsi_dG"] + 4.0 * e["beta"] * e["Gd"], e["Gd"]))
+        Vg, wg = jnp.asarray(mg["V"]), jnp.asarray(mg["weights"])
+        Cg = _cauchy_green(jnp.einsum("mI,Iij->mij", Vg, F))
+        Gg = jnp.einsum("mI,Iij->mij", Vg, G)
+        return h * jnp.sum(wg * jax.vmap(material.dissipation)(Cg, Gg))
+
+
+def _cauchy_green(F):
+    return jnp.swapaxes(F, -1, -2) @ F
+
+
+def _check_degree(k, n_quad, name):
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise ValueError(f"{name}: polynomial degree k must be an integer >= 1, got {k!r}.")
+    if n_quad is None:
+        return int(k), int(k)
+    if isinstance(n_quad, bool) or not isinstance(n_quad, (int, np.integer)) or n_quad < k:
+        raise ValueError(
+            f"{name}({k}): the time quadrature needs at least k = {k} Gauss points to integrate "
+            f"the linear terms exactly; got quadrature={n_quad!r}."
+        )
+    return int(k), int(n_quad)
+
+
+def _gauss(n):
+    p, w = gauss_legendre(n)
+    return tuple(float(v) for v in p), tuple(float(v) for v in w)
+
+
+class cG(AbstractTimeElement):
+    """Standard continuous Galerkin time element of degree k.
+
+    With k Gauss points (the default) it is the k-stage Gauss collocation method:
+    order 2k at the nodes, momentum conserving, energy conserving only for quadratic H.
+    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points (>= k).
+    """
+
+    k: int = eqx.field(static=True)
+    n_quad: int = eqx.field(static=True)
+
+    def __init__(self, k=1, quadrature=None):
+        self.k, self.n_quad = _check_degree(k, quadrature, "cG")
+
+    def _rules(self):
+        rule = _gauss(self.n_quad)
+        return rule, rule
+
+
+class eG(AbstractTimeElement):
+    """Enhanced, energy-consistent Galerkin time element of degree k: assumed strains
+    interpolated over the time nodes plus an algorithmic stress, so that
+    $H_{n+1} - H_n = -D_n$ with $D_n \\ge 0$ holds exactly for every step.
+    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points (>= k)."""
+
+    k: int = eqx.field(static=True)
+    n_quad: int = eqx.field(static=True)
+
+    def __init__(self, k=1, quadrature=None):
+        self.k, self.n_quad = _check_degree(k, quadrature, "eG")
+
+    def _rules(self):
+        rule = _gauss(self.n_quad)
+        return rule, rule
+
+
+class Midpoint(AbstractTimeElement):
+    """The implicit midpoint rule: cG(1) with one Gauss point."""
+
+    k: int = eqx.field(static=True, default=1)
+    n_quad: int = eqx.field(static=True, default=1)
+
+    def _rules(self):
+        rule = _gauss(1)
+        return rule, rule
+
+
+class Newmark(AbstractTimeElement):
+    """Average-acceleration Newmark (trapezoidal rule on positions and momenta), the
+    internal variable advanced by the midpoint rule."""
+
+    k: int = eqx.field(static=True, default=1)
+    n_quad: int = eqx.field(static=True, default=2)
+
+    def _rules(self):
+        return ((0.0, 1.0), (0.5, 0.5)), _gauss(1)
