@@ -107,11 +107,22 @@ def random_spd_spectrum(rng, n=3, eig_range=(0.5, 2.0)):
 
 
 def random_spd_batch(rng, shape, n=3, scale=0.3, min_eig=0.2):
-    """An array of shape ``shape + (n, n)`` of independent `random_spd` matrices."""
-    out = np.empty(tuple(shape) + (n, n))
-    for idx in np.ndindex(*shape):
-        out[idx] = random_spd(rng, n, scale, min_eig)
-    return out
+    """An array of shape ``shape + (n, n)`` of independent `random_spd` matrices
+    (vectorized; failing draws are redrawn)."""
+    shape = tuple(shape)
+    out = np.broadcast_to(np.eye(n), shape + (n, n)).copy()
+    todo = np.ones(shape, dtype=bool)
+    for _ in range(1000):
+        k = int(todo.sum())
+        if k == 0:
+            return out
+        A = rng.standard_normal((k, n, n))
+        cand = np.eye(n) + scale * 0.5 * (A + np.swapaxes(A, -1, -2))
+        ok = np.linalg.eigvalsh(cand).min(axis=-1) >= min_eig
+        idx = tuple(ix[ok] for ix in np.nonzero(todo))
+        out[idx] = cand[ok]
+        todo[idx] = False
+    raise RuntimeError("could not draw SPD matrices with these bounds")
 
 
 def random_rotation(rng, n=3):

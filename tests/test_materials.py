@@ -30,9 +30,18 @@ MATERIALS = {
 }
 
 
-# eqx.filter_jit: the material is a pytree argument (jax.jit of a bound method would try
-# to hash its array leaves); materials of the same structure share one compilation.
-call = eqx.filter_jit(lambda mat, meth, C, G=None: getattr(mat, meth)(C, G))
+# The material is a pytree argument (jax.jit of a bound method would try to hash its array
+# leaves); materials of the same structure share one compilation. Light XLA options: these
+# tiny programs run a few times, so compile time dominates.
+_jit = jax.jit(
+    lambda mat, meth, C, G: getattr(mat, meth)(C, G),
+    static_argnums=1,
+    compiler_options={"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True},
+)
+
+
+def call(mat, meth, C, G=None):
+    return _jit(mat, meth, jnp.asarray(C, dtype=float), None if G is None else jnp.asarray(G, dtype=float))
 
 
 @functools.cache
@@ -335,7 +344,9 @@ def test_parameters_are_differentiable_leaves():
     def D_of(e):
         return eqx.tree_at(lambda m: m.eta_dev, mat, e).dissipation(C, G)
 
+    # Exactly the call of the brief, once eagerly; the FD evaluations are jitted.
     g = float(jax.grad(D_of)(50000.0))
+    D_of = jax.jit(D_of)
     assert np.isfinite(g) and g < 0.0  # more viscous, less dissipation
     h = 1.0
     fd = (float(D_of(50000.0 + h)) - float(D_of(50000.0 - h))) / (2 * h)
@@ -350,6 +361,7 @@ def test_parameters_are_differentiable_leaves():
         object.__setattr__(nh, "mu", mu)
         return eqx.tree_at(lambda m: m.equilibrium, mat, nh).free_energy(C, G)
 
+    psi_of = jax.jit(psi_of)
     gmu = float(jax.grad(psi_of)(7500.0))
     fdmu = (float(psi_of(7500.0 + 1.0)) - float(psi_of(7500.0 - 1.0))) / 2.0
     assert gmu == pytest.approx(fdmu, rel=1e-8)

@@ -91,9 +91,13 @@ def test_sym_to_vec_round_trip(rng):
 # ------------------------------------------------------------------ small dense solve
 
 
+# Light XLA options: the unrolled elimination compiles slowly and runs once.
+_FAST = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
+
 @functools.cache
 def _batched_solve():
-    return jax.jit(jax.vmap(small_solve))
+    return jax.jit(jax.vmap(small_solve), compiler_options=_FAST)
 
 
 def _systems(rng, n, batch, kind):
@@ -159,10 +163,10 @@ def test_small_solve_vector_rhs_and_small_inv(rng):
     n, batch = 6, 8
     A = _systems(rng, n, batch, "zero_pivot")
     b = rng.standard_normal((batch, n))
-    x = np.asarray(jax.jit(jax.vmap(small_solve))(jnp.asarray(A), jnp.asarray(b)))
+    x = np.asarray(jax.jit(jax.vmap(small_solve), compiler_options=_FAST)(jnp.asarray(A), jnp.asarray(b)))
     assert x.shape == (batch, n)
     np.testing.assert_allclose(x, np.linalg.solve(A, b[..., None])[..., 0], rtol=1e-10, atol=1e-12)
-    Ainv = np.asarray(jax.jit(jax.vmap(small_inv))(jnp.asarray(A)))
+    Ainv = np.asarray(jax.jit(jax.vmap(small_inv), compiler_options=_FAST)(jnp.asarray(A)))
     np.testing.assert_allclose(Ainv, np.linalg.inv(A), rtol=1e-10, atol=1e-12 * np.abs(Ainv).max())
 
 
