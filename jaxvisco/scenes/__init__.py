@@ -1,0 +1,3 @@
+"""Built-in scenes."""
+
+from ._lshape import lshape as lshape
