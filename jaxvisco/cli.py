@@ -1,0 +1,410 @@
+"""Command line: ``jaxvisco paper | run | plot``.
+
+``jaxvisco paper`` reproduces the L-shape comparison of Groß & Betsch (2005) (cG(1)
+against eG(1), a step-size change at t = 20 and large steps from the outset), ``jaxvisco
+run`` integrates a built-in L-shape or a mesh file with any integrator, ``jaxvisco plot``
+draws energy, energy balance and momenta from a results file. Every subcommand has
+``--help``. Runs are advanced in equal-sized chunks (one compiled program reused) so that
+progress can be printed and the results file grows as the run goes.
+"""
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+PAPER_T = 60.0
+QUICK_T = 24.0
+
+
+class _CLIError(Exception):
+    pass
+
+
+# ---------------------------------------------------------------- running in chunks
+
+
+def parse_schedule(text):
+    """``"20:0.1,40:1.0"`` -> ``[(20.0, 0.1), (40.0, 1.0)]``."""
+    pieces = []
+    for part in str(text).split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            a, b = part.split(":")
+            pieces.append((float(a), float(b)))
+        except ValueError:
+            raise ValueError(f"bad --schedule entry {part!r}: expected T_UNTIL:DT, e.g. '20:0.1,40:1.0'.") from None
+    if not pieces:
+        raise ValueError(f"empty --schedule {text!r}: expected T_UNTIL:DT pairs, e.g. '20:0.1,40:1.0'.")
+    return pieces
+
+
+def chunk_size(lengths, target=50, save_every=1):
+    """A chunk length (in steps) that divides every run length if possible, so all chunks
+    of all runs share one compiled program; otherwise `target` (the remainder chunk
+    compiles once more)."""
+    g = 0
+    for n in lengths:
+        g = math.gcd(g, int(n))
+    best = 0
+    for c in range(1, min(g, target) + 1):
+        if g % c == 0 and c % save_every == 0:
+            best = c
+    if best >= max(1, target // 8):
+        return best
+    c = max(save_every, (target // save_every) * save_every)
+    return min(c, max(lengths))
+
+
+def _pieces(t_start, hs):
+    """A dt schedule that `simulate` turns back into exactly the steps `hs`."""
+    out, t = [], t_start
+    i = 0
+    while i < len(hs):
+        j = i
+        while j + 1 < len(hs) and hs[j + 1] == hs[i]:
+            j += 1
+        t = t + float(np.sum(hs[i:j + 1]))
+        out.append((t, float(hs[i]) * (1 + 1e-12)))
+        i = j + 1
+    return out, t
+
+
+def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=None, writer=None,
+                save_gamma=False, label="", quiet=False, stream=None):
+    """Integrate over the steps `hs` in chunks of `chunk` steps, appending to `writer`.
+
+    Returns a dict: `t`, `energy` (all saved frames), `status`, `steps`, `wall`,
+    `newton` (total iterations), `state` (last state).
+    """
+    import jax.numpy as jnp
+
+    import jaxvisco as jv
+
+    stream = stream or sys.stderr
+    solver = solver or jv.NewtonKrylov()
+    hs = np.asarray(hs, dtype=float)
+    n = len(hs)
+    state, t = None, float(t0)
+    ts, Hs = [], []
+    status, done, newton = "done", 0, 0
+    start = time.perf_counter()
+    if not quiet:
+        print(f"{label}: {n} steps in chunks of {chunk} (the first chunk compiles, ~30-60 s)", file=stream, flush=True)
+    for i0 in range(0, n, chunk):
+        h = hs[i0:i0 + chunk]
+        dt, t_end = _pieces(t, h)
+        sol = jv.simulate(scene, integrator, t_end=t_end, dt=dt, t0=t, save_every=save_every, solver=solver,
+                          save_gamma=True, initial_state=state, throw=False)
+        first = state is None
+        if writer is not None:
+            writer.append(sol, skip_first=not first, gamma=save_gamma)
+        s = 0 if first else 1
+        ts.extend(np.asarray(sol.t)[s:].tolist())
+        Hs.extend(np.asarray(sol.energy)[s:].tolist())
+        ns = int(len(np.asarray(sol.step_t)))
+        done += ns
+        its = np.asarray(sol.newton_iterations)
+        newton += int(its.sum())
+        state = sol.state(-1)
+        t = float(np.asarray(sol.t)[-1])
+        if not quiet:
+            print(f"{label}: t = {t:9.4f}  step {done:6d}/{n}  newton/step {its.mean() if ns else 0:4.1f}"
+                  f"  H = {Hs[-1]:.8g}", file=stream, flush=True)
+        if sol.status == "failed":
+            status = "failed"
+            break
+        if sol.status == "equilibrium":
+            status = "equilibrium"
+            break
+    state = jv.State(jnp.asarray(state.x), jnp.asarray(state.p), state.gamma)
+    return dict(t=np.asarray(ts), energy=np.asarray(Hs), status=status, steps=done, newton=newton,
+                wall=time.perf_counter() - start, state=state, t_last=t)
+
+
+# ---------------------------------------------------------------- scenes and integrators
+
+
+def make_integrator(name, order=1):
+    import jaxvisco as jv
+
+    key = str(name).strip().lower()
+    if key in ("cg", "eg"):
+        if not isinstance(order, int) or order < 1:
+            raise ValueError(f"--order must be an integer >= 1, got {order!r}.")
+        return jv.cG(order) if key == "cg" else jv.eG(order)
+    if key == "newmark":
+        return jv.Newmark()
+    if key == "midpoint":
+        return jv.Midpoint()
+    raise ValueError(f"unknown integrator {name!r}; choose cG, eG, Newmark or Midpoint.")
+
+
+def make_scene(dim=2, refinement=1, element=None, mesh=None, lam=None, mu=None, density=None, eta_dev=None,
+               eta_vol=None):
+    """The paper's L-shape (or a mesh file with the paper's material and rigid initial
+    velocity v0 = v_T + omega x X), with any parameter overridden."""
+    import jax.numpy as jnp
+
+    import jaxvisco as jv
+    from jaxvisco.scenes._lshape import PAPER
+
+    p = dict(PAPER)
+    for k, v in dict(lam=lam, mu=mu, density=density, eta_dev=eta_dev, eta_vol=eta_vol).items():
+        if v is not None:
+            if not (v > 0 and math.isfinite(v)) and not (k.startswith("eta") and v == math.inf):
+                raise ValueError(f"--{k.replace('_', '-')} must be positive, got {v!r}.")
+            p[k] = v
+    if mesh is None:
+        if dim not in (2, 3):
+            raise ValueError(f"--dim must be 2 or 3, got {dim!r}.")
+        if not isinstance(refinement, int) or refinement < 1:
+            raise ValueError(f"--refinement must be an integer >= 1, got {refinement!r}.")
+        return jv.scenes.lshape(dim=dim, refinement=refinement, element=element, lam=p["lam"], mu=p["mu"],
+                                density=p["density"], eta_dev=p["eta_dev"], eta_vol=p["eta_vol"])
+    m = jv.Mesh.read(mesh)
+    nh = jv.NeoHooke(lam=p["lam"], mu=p["mu"])
+    material = jv.ReeseGovindjee(nh, nh, eta_dev=p["eta_dev"], eta_vol=p["eta_vol"])
+    X = jnp.asarray(m.points)
+    vT = jnp.asarray(p["v_translation"], dtype=float)
+    w = jnp.asarray(p["omega"], dtype=float)
+    if m.dim == 2:
+        v0 = vT[:2] + w[2] * jnp.stack([-X[:, 1], X[:, 0]], axis=-1)
+    else:
+        v0 = vT + jnp.cross(w, X)
+    return jv.Scene(m, material, p["density"], velocities=v0)
+
+
+# ---------------------------------------------------------------- subcommands
+
+
+def _paper(args):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import jaxvisco as jv
+    from jaxvisco._results import ResultsWriter, scene_attributes
+    from jaxvisco._schedule import step_sizes
+
+    out = args.out
+    os.makedirs(out, exist_ok=True)
+    if args.quick:
+        T = QUICK_T if args.t_end is None else args.t_end
+        schedule = [(20.0, 0.2), (T, 1.0)]
+    else:
+        T = PAPER_T if args.t_end is None else args.t_end
+        schedule = [(20.0, 0.1), (T, 1.0)]
+    scene = jv.scenes.lshape(dim=2, refinement=1)
+    runs = [("schedule", step_sizes(0.0, T, schedule)), ("large", step_sizes(0.0, T, 1.0))]
+    c = chunk_size([len(h) for _, h in runs], target=50)
+    results = []
+    for scheme_name, integrator in (("cG1", jv.cG(1)), ("eG1", jv.eG(1))):
+        for sched_name, hs in runs:
+            label = f"{scheme_name}_{sched_name}"
+            path = os.path.join(out, label + ".h5")
+            attrs = dict(scene_attributes(scene), scene="lshape", refinement=1, integrator=integrator.describe(),
+                         parameters=dict(schedule=schedule if sched_name == "schedule" else [(T, 1.0)], t_end=T))
+            w = ResultsWriter(path, scene.mesh, attrs)
+            status = "failed"
+            try:
+                r = run_chunked(scene, integrator, hs, chunk=c, writer=w, label=label, quiet=args.quiet)
+                status = r["status"]
+            finally:
+                w.close(status=status)
+            results.append((scheme_name, sched_name, r))
+            sched_txt = "h=0.1->1.0@t=20" if sched_name == "schedule" else "h=1.0"
+            if args.quick and sched_name == "schedule":
+                sched_txt = "h=0.2->1.0@t=20"
+            print(f"{scheme_name:4s} {sched_txt:16s} status={r['status']:11s} H0={r['energy'][0]:.6g} "
+                  f"H_end={r['energy'][-1]:.6g} (t={r['t_last']:.4g}) steps={r['steps']} wall={r['wall']:.1f}s",
+                  flush=True)
+    fig, ax = plt.subplots(figsize=(8, 5))
+    styles = {"cG1": "tab:red", "eG1": "tab:blue"}
+    for scheme_name, sched_name, r in results:
+        ls = "-" if sched_name == "schedule" else "--"
+        ax.plot(r["t"], r["energy"], ls, color=styles[scheme_name], label=f"{scheme_name} {sched_name}")
+        if r["status"] == "failed":
+            ax.plot(r["t"][-1], r["energy"][-1], "x", color=styles[scheme_name], ms=10, mew=2)
+            ax.annotate("diverged", (r["t"][-1], r["energy"][-1]), textcoords="offset points", xytext=(5, 5),
+                        color=styles[scheme_name])
+    ax.axvline(20.0, color="gray", lw=0.8, ls=":")
+    ax.text(20.0, 0.98, " step change", transform=ax.get_xaxis_transform(), va="top", color="gray")
+    ax.set_yscale("log")
+    ax.set_xlabel("t")
+    ax.set_ylabel("total energy H")
+    ax.set_title("L-shape, refinement 1: cG(1) vs eG(1)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "energy.png"), dpi=120)
+    plt.close(fig)
+    if not args.quiet:
+        print(f"wrote {out}/energy.png and {len(results)} results files", file=sys.stderr)
+    return 0
+
+
+def _run(args):
+    import jaxvisco as jv
+    from jaxvisco._results import ResultsWriter, scene_attributes
+    from jaxvisco._schedule import step_sizes
+
+    if args.dt is not None and args.schedule is not None:
+        raise ValueError("give either --dt or --schedule, not both.")
+    if args.mesh is not None and not os.path.isfile(args.mesh):
+        raise FileNotFoundError(f"mesh file {args.mesh!r} does not exist.")
+    if args.save_every < 1:
+        raise ValueError(f"--save-every must be >= 1, got {args.save_every}.")
+    integrator = make_integrator(args.integrator, args.order)
+    scene = make_scene(dim=args.dim, refinement=args.refinement, element=args.element, mesh=args.mesh,
+                       lam=args.lam, mu=args.mu, density=args.density, eta_dev=args.eta_dev, eta_vol=args.eta_vol)
+    if args.schedule is not None:
+        dt = parse_schedule(args.schedule)
+        t_end = args.t_end if args.t_end is not None else dt[-1][0]
+    else:
+        dt = 0.1 if args.dt is None else args.dt
+        t_end = 1.0 if args.t_end is None else args.t_end
+    hs = step_sizes(0.0, t_end, dt)
+    c = chunk_size([len(hs)], target=args.chunk, save_every=args.save_every)
+    params = {k: v for k, v in vars(args).items() if k != "func"}
+    attrs = dict(scene_attributes(scene), scene=("mesh:" + args.mesh) if args.mesh else "lshape",
+                 integrator=integrator.describe(), parameters=params)
+    w = ResultsWriter(args.out, scene.mesh, attrs)
+    status = "failed"
+    try:
+        r = run_chunked(scene, integrator, hs, chunk=c, save_every=args.save_every, writer=w,
+                        save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet)
+        status = r["status"]
+    finally:
+        w.close(status=status)
+    print(f"{integrator.name}: status={status} H0={r['energy'][0]:.8g} H_end={r['energy'][-1]:.8g} "
+          f"t={r['t_last']:.6g} steps={r['steps']} wall={r['wall']:.1f}s -> {args.out}", flush=True)
+    if status == "failed":
+        raise jv.SolverError(f"{integrator.name}: the step after t = {r['t_last']:.6g} did not converge; "
+                             f"results up to it are in {args.out}", r["t_last"], r["state"], None)
+    return 0
+
+
+def _plot(args):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxvisco._results import read_results
+
+    r = read_results(args.results)
+    out = args.out or os.path.splitext(args.results)[0] + ".png"
+    t, H = r["t"], r["energy"]
+    D = r.get("dissipated", np.zeros_like(H))
+    H0 = H[0] if len(H) else 1.0
+    fig, axs = plt.subplots(2, 2, figsize=(11, 7))
+    ax = axs[0, 0]
+    ax.plot(t, H, label="H")
+    ax.plot(t, H + D, "--", label="H + dissipated (= H0)")
+    ax.set_title("energy")
+    ax.legend()
+    ax = axs[0, 1]
+    err = np.abs(H - H0 + D) / abs(H0)
+    ax.semilogy(t, np.maximum(err, 1e-17))
+    ax.set_title("energy balance error |H - H0 + D| / H0")
+    ax = axs[1, 0]
+    L = r.get("linear_momentum")
+    if L is not None:
+        for i in range(L.shape[1]):
+            ax.plot(t, L[:, i], label="L_" + "xyz"[i])
+        ax.legend()
+    ax.set_title("linear momentum")
+    ax = axs[1, 1]
+    J = r.get("angular_momentum")
+    if J is not None:
+        if J.ndim == 1:
+            ax.plot(t, J, label="J_z")
+        else:
+            for i in range(J.shape[1]):
+                ax.plot(t, J[:, i], label="J_" + "xyz"[i])
+        ax.legend()
+    ax.set_title("angular momentum")
+    for a in axs.flat:
+        a.set_xlabel("t")
+    fig.suptitle(f"{os.path.basename(args.results)}: {r['attrs'].get('integrator', '')} ({r['attrs'].get('status', '')})",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    print(f"wrote {out}")
+    return 0
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="jaxvisco", description="Finite-strain viscoelastodynamics with "
+                                "energy-consistent Galerkin time elements (Gross & Betsch 2005).")
+    sub = p.add_subparsers(dest="command", metavar="{paper,run,plot}")
+    sub.required = True
+
+    q = sub.add_parser("paper", help="cG(1) vs eG(1) on the paper's L-shape; energy.png + results files",
+                       description="Run cG(1) and eG(1) on the 2D L-shape (refinement 1) with h = 0.1 up to t = 20 "
+                       "then h = 1.0, and with h = 1.0 from the outset; write one results file per run and "
+                       "energy.png.")
+    q.add_argument("--quick", action="store_true", help=f"short version: h = 0.2 up to t = 20, then h = 1.0 up to "
+                   f"t = {QUICK_T:g}")
+    q.add_argument("--t-end", type=float, default=None, help=f"final time (default {PAPER_T:g}, {QUICK_T:g} with --quick)")
+    q.add_argument("--out", default="paper-out", help="output directory (default: paper-out)")
+    q.add_argument("--quiet", action="store_true", help="no progress lines")
+    q.set_defaults(func=_paper)
+
+    r = sub.add_parser("run", help="integrate a built-in L-shape or a mesh file",
+                       description="Integrate the paper's L-shape (or a mesh file with the paper's material and "
+                       "rigid initial velocity) with any integrator; write an HDF5 results file and XDMF.")
+    r.add_argument("--dim", type=int, default=2, help="2 or 3 (built-in L-shape; default 2)")
+    r.add_argument("--refinement", type=int, default=1, help="elements per unit length (default 1)")
+    r.add_argument("--element", default=None, help="cell type, e.g. quad4, quad9, tri3, hex8, tet10 (default quad4/hex8)")
+    r.add_argument("--mesh", default=None, help="a mesh file (any meshio format) instead of the built-in L-shape")
+    r.add_argument("--integrator", default="eG", help="cG, eG, Newmark or Midpoint (default eG)")
+    r.add_argument("--order", type=int, default=1, help="polynomial degree k of cG(k)/eG(k) (default 1)")
+    r.add_argument("--t-end", type=float, default=None, help="final time (default 1, or the schedule's last time)")
+    r.add_argument("--dt", type=float, default=None, help="constant time step (default 0.1)")
+    r.add_argument("--schedule", default=None, help="piecewise-constant steps 'T1:DT1,T2:DT2', e.g. '20:0.1,40:1.0'")
+    for name in ("eta-dev", "eta-vol", "lam", "mu", "density"):
+        r.add_argument("--" + name, type=float, default=None, help=f"material parameter {name} (default: paper)")
+    r.add_argument("--save-every", type=int, default=1, help="save every N-th step (default 1)")
+    r.add_argument("--save-gamma", action="store_true", help="also store the internal variable /qp/gamma")
+    r.add_argument("--chunk", type=int, default=50, help="steps per compiled chunk (progress granularity; default 50)")
+    r.add_argument("--out", default="jaxvisco-run.h5", help="results file (default jaxvisco-run.h5); an .xdmf goes beside it")
+    r.add_argument("--quiet", action="store_true", help="no progress lines")
+    r.set_defaults(func=_run)
+
+    pl = sub.add_parser("plot", help="plot energy, energy balance and momenta from a results file",
+                        description="Plot H, H + dissipated, the energy balance error and the momenta of a results file.")
+    pl.add_argument("results", help="a results .h5 file")
+    pl.add_argument("--out", default=None, help="PNG file (default: beside the results file)")
+    pl.set_defaults(func=_plot)
+    return p
+
+
+def main(argv=None):
+    """Entry point of the ``jaxvisco`` console script; returns the exit code."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxvisco as jv
+
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, TypeError, FileNotFoundError, OSError, jv.SolverError, _CLIError) as e:
+        msg = " ".join(str(e).split())
+        print(f"jaxvisco: error: {msg}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jaxvisco: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
