@@ -197,10 +197,12 @@ def _paper(args):
     os.makedirs(out, exist_ok=True)
     if args.quick:
         T = QUICK_T if args.t_end is None else args.t_end
-        schedule = [(20.0, 0.2), (T, 1.0)]
     else:
         T = PAPER_T if args.t_end is None else args.t_end
-        schedule = [(20.0, 0.1), (T, 1.0)]
+    # h = 0.2 is already too large for cG(1) before t = 20 (its energy grows ~9x by
+    # t = 19); h = 0.1 keeps it bounded there, and running it costs little beside
+    # compilation, so --quick only shortens the final time.
+    schedule = [(20.0, 0.1), (T, 1.0)]
     scene = jv.scenes.lshape(dim=2, refinement=1)
     runs = [("schedule", step_sizes(0.0, T, schedule)), ("large", step_sizes(0.0, T, 1.0))]
     c = chunk_size([len(h) for _, h in runs], target=50)
@@ -220,8 +222,6 @@ def _paper(args):
                 w.close(status=status)
             results.append((scheme_name, sched_name, r))
             sched_txt = "h=0.1->1.0@t=20" if sched_name == "schedule" else "h=1.0"
-            if args.quick and sched_name == "schedule":
-                sched_txt = "h=0.2->1.0@t=20"
             print(f"{scheme_name:4s} {sched_txt:16s} status={r['status']:11s} H0={r['energy'][0]:.6g} "
                   f"H_end={r['energy'][-1]:.6g} (t={r['t_last']:.4g}) steps={r['steps']} wall={r['wall']:.1f}s",
                   flush=True)
@@ -351,8 +351,7 @@ def build_parser():
                        description="Run cG(1) and eG(1) on the 2D L-shape (refinement 1) with h = 0.1 up to t = 20 "
                        "then h = 1.0, and with h = 1.0 from the outset; write one results file per run and "
                        "energy.png.")
-    q.add_argument("--quick", action="store_true", help=f"short version: h = 0.2 up to t = 20, then h = 1.0 up to "
-                   f"t = {QUICK_T:g}")
+    q.add_argument("--quick", action="store_true", help=f"short version: stop at t = {QUICK_T:g}")
     q.add_argument("--t-end", type=float, default=None, help=f"final time (default {PAPER_T:g}, {QUICK_T:g} with --quick)")
     q.add_argument("--out", default="paper-out", help="output directory (default: paper-out)")
     q.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -1,0 +1,87 @@
+"""The jaxvisco command line: help, a tiny run, plot, errors."""
+
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import h5py
+import numpy as np
+import pytest
+
+from jaxvisco.cli import chunk_size, main, parse_schedule
+
+
+@pytest.mark.parametrize("sub", [None, "paper", "run", "plot"])
+def test_help(sub, capsys):
+    argv = ["--help"] if sub is None else [sub, "--help"]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 0
+    assert "usage: jaxvisco" in capsys.readouterr().out
+
+
+def test_schedule_and_chunks():
+    assert parse_schedule("20:0.1, 40:1.0") == [(20.0, 0.1), (40.0, 1.0)]
+    with pytest.raises(ValueError, match="20-0.1"):
+        parse_schedule("20-0.1")
+    assert chunk_size([240, 60]) == 30
+    assert chunk_size([104, 24]) == 8
+    assert chunk_size([3]) == 3
+
+
+@pytest.fixture(scope="module")
+def run_file(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "res.h5"
+    # Chunks of 3 steps; the same compiled program as the examples' eG(1) 3-step runs.
+    code = main(["run", "--t-end", "0.3", "--dt", "0.1", "--chunk", "3", "--out", str(out), "--quiet"])
+    assert code == 0
+    return out
+
+
+def test_run_writes_results(run_file):
+    with h5py.File(run_file, "r") as f:
+        assert f["time"].shape == (4,)
+        assert f["nodal/x"].shape == (4, 56, 2)
+        assert f.attrs["status"] == "done"
+        H = np.asarray(f["diagnostics/energy"])
+        D = np.asarray(f["diagnostics/dissipated"])
+    assert np.all(np.diff(H) <= 0)  # eG(1): energy never increases
+    assert np.max(np.abs(H - H[0] + D)) < 1e-6 * H[0]
+
+
+def test_xdmf_from_other_cwd(run_file, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    xdmf = run_file.with_suffix(".xdmf")
+    root = ET.parse(xdmf).getroot()
+    assert len(root.findall(".//Grid[@GridType='Uniform']")) == 4
+    for e in root.iter("DataItem"):
+        if e.get("Format") == "HDF":
+            h5 = e.text.strip().split(":")[0]
+            assert os.path.isfile(os.path.join(xdmf.parent, h5))
+    assert not list(tmp_path.iterdir())  # nothing written into the CWD
+
+
+def test_plot(run_file, tmp_path):
+    png = tmp_path / "p.png"
+    assert main(["plot", str(run_file), "--out", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bad_dt_in_process(capsys, tmp_path):
+    assert main(["run", "--dt", "-1", "--out", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxvisco: error:") and "-1" in err and "Traceback" not in err
+
+
+def test_missing_mesh_subprocess(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "jaxvisco.cli", "run", "--mesh", "missing.msh"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    assert "missing.msh" in p.stderr and "Traceback" not in p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith("jaxvisco: error:")
+
+
+def test_bad_plot_file(tmp_path, capsys):
+    assert main(["plot", str(tmp_path / "none.h5")]) == 2
+    assert "none.h5" in capsys.readouterr().err
