@@ -6,6 +6,7 @@ jaxvisco computes in float64 and never switches precision behind your back: call
 
 from . import scenes as scenes
 from ._config import require_x64 as require_x64
+from ._drive import drive as drive
 from ._elements import ElementType as ElementType, element_type as element_type
 from ._generators import box as box, lshape_mesh as lshape_mesh, rectangle as rectangle
 from ._materials import NeoHooke as NeoHooke, ReeseGovindjee as ReeseGovindjee, paper_material as paper_material

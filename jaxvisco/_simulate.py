@@ -116,7 +116,8 @@ def relative_kinetic_energy(scene: Scene, x, p):
 
 def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, save_every=1,
              solver: NewtonKrylov = NewtonKrylov(), save_gamma=False, stop_at_equilibrium=None,
-             max_halvings=6, initial_state: Optional[State] = None, throw=True) -> Solution:
+             max_halvings=6, initial_state: Optional[State] = None, max_steps=None,
+             throw=True) -> Solution:
     """Integrate a scene in time.
 
     **Arguments:**
@@ -131,6 +132,8 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
       below `tol * H_0`.
     - `max_halvings`: how often a failed step may be halved before the run stops.
     - `initial_state`: start from this `State` instead of the scene's (restarts).
+    - `max_steps`: capacity of the compiled loop (default: the number of steps). Runs
+      with different step counts but the same `max_steps` share one compilation.
     - `throw`: raise `SolverError` on failure (else return with `status == "failed"`).
 
     **Returns:** a `Solution` (trimmed to the saved frames when called outside `jit`).
@@ -144,9 +147,14 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
     if not isinstance(max_halvings, (int, np.integer)) or not 0 <= max_halvings <= 30:
         raise ValueError(f"max_halvings must be an integer in [0, 30], got {max_halvings!r}.")
     hs = step_sizes(t0, t_end, dt)
+    n_active = len(hs)
+    if max_steps is not None:
+        if int(max_steps) < n_active:
+            raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
+        hs = np.concatenate([hs, np.ones(int(max_steps) - n_active)])
     state0 = scene.initial_state() if initial_state is None else initial_state
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs),
-               int(save_every), bool(save_gamma),
+               jnp.asarray(n_active), int(save_every), bool(save_gamma),
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
                int(max_halvings))
     if isinstance(sol.n_saved, jax.core.Tracer):
@@ -162,9 +170,8 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
 
 
 @eqx.filter_jit
-def _run(scene, scheme, solver, state0, t0, hs, save_every, save_gamma, eq_tol, max_halvings):
-    n_steps = hs.shape[0]
-    n_frames = 1 + -(-n_steps // save_every)
+def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma, eq_tol, max_halvings):
+    n_frames = 1 + -(-hs.shape[0] // save_every)
     diag0 = scene.diagnostics(state0)
     H0 = diag0["energy"]
     full = 2**max_halvings
@@ -254,7 +261,7 @@ def _run(scene, scheme, solver, state0, t0, hs, save_every, save_gamma, eq_tol, 
                     n_done=c["n_done"] + (~failed).astype(int))
 
     frames = write(frame_buffers(), 0, t0, state0, diag0, jnp.asarray(0.0), jnp.asarray(0.0))
-    zeros_f, zeros_i = jnp.zeros(n_steps), jnp.zeros(n_steps, dtype=int)
+    zeros_f, zeros_i = jnp.zeros(hs.shape[0]), jnp.zeros(hs.shape[0], dtype=int)
     steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i,
                  residual=zeros_f, rejections=zeros_i)
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=scene.velocity(state0.p), tan=empty_tangent(scheme, scene),

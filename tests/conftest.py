@@ -1,3 +1,10 @@
-import jax
+import os
+
+# Tests are dominated by XLA compile time, not run time: compile with cheap optimization.
+os.environ["XLA_FLAGS"] = (
+    os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+).strip()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
