@@ -1,0 +1,88 @@
+"""Measured convergence orders (THEORY §3): cG(k) is of order 2k at the time nodes."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxvisco as jv
+
+
+def _soft_scene():
+    # A small, soft body so that h*omega is small at the tested steps (asymptotic regime).
+    mesh = jv.rectangle(2, 1, lx=2.0, ly=1.0)
+    nh = jv.NeoHooke(lam=30.0, mu=7.5)
+    mat = jv.ReeseGovindjee(nh, nh, eta_dev=50.0, eta_vol=10.0)
+    X = mesh.points
+    v0 = jnp.stack([0.3 - 0.5 * X[:, 1] + 0.2 * X[:, 0] * X[:, 1], 0.5 * X[:, 0] - 0.1 * X[:, 1] ** 2], -1)
+    return jv.Scene(mesh, mat, 8.93, velocities=v0)
+
+
+T = 0.8
+STEPS = {1: (0.2, 0.1, 0.05), 2: (0.4, 0.2, 0.1), 3: (0.8, 0.4, 0.2)}
+
+
+@pytest.fixture(scope="module")
+def reference():
+    scene = _soft_scene()
+    sol = jv.simulate(scene, jv.cG(3), t_end=T, dt=0.0125, save_gamma=True, max_steps=64,
+                      solver=jv.NewtonKrylov(rtol=1e-12))
+    return scene, np.asarray(sol.x[-1]), np.asarray(sol.gamma[-1])
+
+
+def _orders(scene, scheme, ref_x, ref_g):
+    ex, eg = [], []
+    for h in STEPS[scheme.k]:
+        sol = jv.simulate(scene, scheme, t_end=T, dt=h, save_gamma=True, max_steps=64,
+                          solver=jv.NewtonKrylov(rtol=1e-12))
+        ex.append(np.max(np.abs(np.asarray(sol.x[-1]) - ref_x)))
+        eg.append(np.max(np.abs(np.asarray(sol.gamma[-1]) - ref_g)))
+    ex, eg = np.array(ex), np.array(eg)
+    return np.log2(ex[:-1] / ex[1:]), np.log2(eg[:-1] / eg[1:]), ex, eg
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_cG_order_2k(reference, k):
+    scene, ref_x, ref_g = reference
+    ox, og, ex, eg = _orders(scene, jv.cG(k), ref_x, ref_g)
+    assert ox[-1] >= 2 * k - 0.3, (ox, ex)
+    assert og[-1] >= 2 * k - 0.3, (og, eg)
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_eG_order(reference, k):
+    """eG(k) evaluates stresses at strains interpolated over the time nodes; measured
+    here: order 2k for k = 1, 2 and at least 4 for k = 3 (see the issue notes)."""
+    scene, ref_x, ref_g = reference
+    ox, og, ex, eg = _orders(scene, jv.eG(k), ref_x, ref_g)
+    expected = min(2 * k, 4)
+    assert ox[-1] >= expected - 0.3, (ox, ex)
+    assert og[-1] >= expected - 0.3, (og, eg)
+
+
+def _gamma_reference(mat, F, T):
+    def rhs(t, g):
+        Ft = np.asarray(F(t))
+        return np.asarray(mat.gamma_rate(jnp.asarray(Ft.T @ Ft), jnp.asarray(g.reshape(3, 3)))).ravel()
+
+    return solve_ivp(rhs, (0, T), np.eye(3).ravel(), method="Radau", rtol=1e-13, atol=1e-15).y[:, -1].reshape(3, 3)
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("scheme", [jv.cG(1), jv.cG(2), jv.cG(3), jv.eG(1), jv.eG(2)], ids=lambda s: s.name)
+def test_drive_order_2k(scheme):
+    mat = jv.paper_material()
+    A = jnp.array([[0.3, 0.1, 0.0], [0.05, -0.1, 0.02], [0.0, 0.04, 0.15]])
+    F = lambda t: jnp.eye(3) + jnp.sin(2.0 * t) * A  # noqa: E731
+    ref = _gamma_reference(mat, F, 1.0)
+    errs = []
+    for n in (4, 8, 16):
+        out = jv.drive(mat, F, np.linspace(0.0, 1.0, n + 1), scheme)
+        assert bool(np.all(out["converged"]))
+        errs.append(np.max(np.abs(np.asarray(out["gamma"][-1]) - ref)))
+    order = np.log2(errs[-2] / errs[-1])
+    assert order >= 2 * scheme.k - 0.3, (order, errs)
+    # Outputs are consistent with the material at the driven state.
+    assert np.all(np.asarray(out["D"]) >= 0.0)
