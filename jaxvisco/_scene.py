@@ -5,11 +5,12 @@ from typing import Callable, Optional
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import require_x64
 from ._krylov import pcg
 from ._materials import ReeseGovindjee
-from ._space import Discretization
+from ._space import Discretization, StaticArray
 from ._validation import check_finite, check_positive
 
 
@@ -35,6 +36,9 @@ class Scene(eqx.Module):
     - `gamma`: initial internal variable (n_cells, nq, 3, 3) (default identity: virgin).
     - `load`, `load_time`: dead nodal loads `load` (n_nodes, dim) scaled by the scalar
       function `load_time(t)` (default 1); none for free motion.
+    - `fixed`: Dirichlet conditions: a boolean mask (n_nodes, dim) of position components
+      held at their initial values (default: none; free motion).
+    - `mass`: `"consistent"` (default) or `"lumped"` (HRZ diagonal scaling).
     - `quadrature_order`: spatial quadrature order (default: the element's full rule).
     """
 
@@ -47,9 +51,10 @@ class Scene(eqx.Module):
     gamma0: Optional[jax.Array]
     load: Optional[jax.Array]
     load_time: Optional[Callable] = eqx.field(static=True)
+    fixed: Optional[StaticArray] = eqx.field(static=True)
 
     def __init__(self, mesh, material, density, positions=None, velocities=None, gamma=None,
-                 load=None, load_time=None, quadrature_order=None):
+                 load=None, load_time=None, fixed=None, mass="consistent", quadrature_order=None):
         require_x64()
         if not isinstance(material, ReeseGovindjee):
             if not callable(material):
@@ -62,10 +67,19 @@ class Scene(eqx.Module):
         self.mesh = mesh
         self.material = material
         self.density = jnp.asarray(density, dtype=float)
-        self.disc = Discretization(mesh, quadrature_order)
+        self.disc = Discretization(mesh, quadrature_order, mass=mass)
         shape = (mesh.n_nodes, mesh.dim)
         self.x0 = _field("positions", positions, shape, mesh.points)
         self.v0 = _field("velocities", velocities, shape, jnp.zeros(shape))
+        if fixed is None:
+            self.fixed = None
+        else:
+            mask = np.asarray(fixed)
+            if mask.shape != shape or mask.dtype != bool:
+                raise ValueError(f"fixed must be a boolean mask of shape {shape}, got {mask.dtype} {mask.shape}.")
+            self.fixed = StaticArray(mask) if mask.any() else None
+            if self.fixed is not None:
+                self.v0 = jnp.where(mask, 0.0, self.v0)
         if material.has_internal_variable:
             gshape = (self.disc.n_cells, self.disc.n_qp, 3, 3)
             self.gamma0 = _field("gamma", gamma, gshape, jnp.broadcast_to(jnp.eye(3), gshape))

@@ -201,7 +201,7 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
         def body(c):
             hs_ = h / (2.0 ** c["level"])
             ctx = make_context(scene, c["state"], c["t"], hs_)
-            r = solve_step(solver, scheme, scene, ctx, predictor(scheme, ctx, c["v"]), c["tan"])
+            r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
             new = end_state(scheme, scene, ctx, r.U)
             D = step_dissipation(scheme, scene, ctx, r.U)
             W = external_work(scheme, scene, ctx, r.U)

@@ -51,7 +51,9 @@ class Discretization(eqx.Module):
     **Fields:** `N` (nq, n_en) shape values, `dN` (n_cells, nq, n_en, dim) reference
     gradients $\\nabla_X N$, `JxW` (n_cells, nq) quadrature weights times $\\det J$
     (thickness 1 in plane strain), `mass_el` (n_cells, n_en, n_en) element mass matrices
-    for unit density; `cells` (static) the connectivity.
+    for unit density (consistent, or lumped by HRZ diagonal scaling: the diagonal of the
+    consistent matrix scaled to the element's mass, positive for every element type);
+    `cells` (static) the connectivity.
     """
 
     N: jax.Array
@@ -62,12 +64,19 @@ class Discretization(eqx.Module):
     n_nodes: int = eqx.field(static=True)
     dim: int = eqx.field(static=True)
 
-    def __init__(self, mesh, order=None):
+    def __init__(self, mesh, order=None, mass="consistent"):
+        if mass not in ("consistent", "lumped"):
+            raise ValueError(f"mass must be 'consistent' or 'lumped', got {mass!r}.")
         qd = mesh.quadrature_data(order)
         self.N = jnp.asarray(qd.N)
         self.dN = jnp.asarray(qd.dN_dX)
         self.JxW = jnp.asarray(qd.JxW)
-        self.mass_el = jnp.einsum("eq,qa,qb->eab", self.JxW, self.N, self.N)
+        mass_el = jnp.einsum("eq,qa,qb->eab", self.JxW, self.N, self.N)
+        if mass == "lumped":
+            diag = jnp.diagonal(mass_el, axis1=-2, axis2=-1)
+            scale = jnp.sum(self.JxW, axis=1) / jnp.sum(diag, axis=1)
+            mass_el = jax.vmap(jnp.diag)(diag * scale[:, None])
+        self.mass_el = mass_el
         self.cells = StaticArray(np.asarray(mesh.cells))
         self.n_nodes = int(mesh.n_nodes)
         self.dim = int(mesh.dim)

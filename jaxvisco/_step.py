@@ -92,7 +92,17 @@ def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
     ext = external_term(scheme, scene, ctx)
     if ext is not None:
         R_x = R_x - ext
+    if scene.fixed is not None:
+        # Held components: the momentum equation is replaced by the constraint, scaled
+        # to momentum units like the rows it replaces.
+        mask = jnp.asarray(scene.fixed.array)[None]
+        R_x = jnp.where(mask, (U.x - scene.x0[None]) * constraint_scale(scene, ctx.h), R_x)
     return Unknowns(R_x, None if R_G is None else jnp.moveaxis(R_G, 2, 0))
+
+
+def constraint_scale(scene, h):
+    """Mass per node over the step: the scale of a constraint row (Dirichlet)."""
+    return scene.density * scene.disc.volume() / scene.disc.n_nodes / h
 
 
 def step_dissipation(scheme, scene, ctx, U):
@@ -129,11 +139,13 @@ def end_velocity(scheme, ctx, U):
     return jnp.einsum("I,Ind->nd", jnp.asarray(m["D_end"]), X) / ctx.h
 
 
-def predictor(scheme, ctx, velocity) -> Unknowns:
+def predictor(scheme, scene, ctx, velocity) -> Unknowns:
     """Uniform motion for positions, frozen internal variable."""
     m, _ = scheme.matrices()
     alpha = jnp.asarray(m["nodes"][1:])
     x = ctx.state.x[None] + alpha[:, None, None] * ctx.h * velocity[None]
+    if scene.fixed is not None:
+        x = jnp.where(jnp.asarray(scene.fixed.array)[None], scene.x0[None], x)
     g = None
     if ctx.state.gamma is not None:
         g = jnp.broadcast_to(sym_to_vec(ctx.state.gamma)[None], (len(alpha),) + ctx.state.gamma.shape[:-2] + (6,))

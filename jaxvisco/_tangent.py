@@ -22,21 +22,30 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._sparse import HostLU, lu_factor, lu_solve
-from ._step import Unknowns, nodal_fields
+from ._step import Unknowns, constraint_scale, nodal_fields
 from ._tensor import small_inv, vec_to_sym
 
 
 @functools.lru_cache(maxsize=32)
-def position_pattern(cells, k, n_nodes, dim):
-    """Host factorization object for the (k n d)^2 position block of a mesh."""
+def position_pattern(cells, k, n_nodes, dim, fixed=None):
+    """Host factorization object for the (k n d)^2 position block of a mesh (element
+    blocks, then one diagonal entry per held component and time node)."""
     c = cells.array
     J = np.arange(k)[:, None, None]
     i = np.arange(dim)[None, None, :]
     dofs = (J * n_nodes * dim)[None] + c[:, None, :, None] * dim + i[None]  # (e, k, n_en, d)
     dofs = dofs.reshape(c.shape[0], -1)
-    rows = np.broadcast_to(dofs[:, :, None], dofs.shape + (dofs.shape[1],))
-    cols = np.broadcast_to(dofs[:, None, :], rows.shape)
+    rows = np.broadcast_to(dofs[:, :, None], dofs.shape + (dofs.shape[1],)).ravel()
+    cols = np.broadcast_to(dofs[:, None, :], dofs.shape + (dofs.shape[1],)).ravel()
+    if fixed is not None:
+        held = _held_dofs(fixed, k, n_nodes, dim)
+        rows, cols = np.concatenate([rows, held]), np.concatenate([cols, held])
     return HostLU(rows, cols, k * n_nodes * dim)
+
+
+def _held_dofs(fixed, k, n_nodes, dim):
+    flat = np.flatnonzero(fixed.array.ravel())
+    return (np.arange(k)[:, None] * n_nodes * dim + flat[None]).ravel()
 
 
 class Tangent(eqx.Module):
@@ -107,9 +116,17 @@ def form_tangent(scheme, scene, ctx, U) -> Tangent:
     K = ctx.h * jnp.einsum("eq,Jl,eqaA,eqliAIjB,eqbB->eJaiIbj", disc.JxW, W, disc.dN, dPdF, disc.dN)
     A = jnp.asarray(m["A"])[:, 1:]
     Mass = scene.density * jnp.einsum("JI,eab,ij->eJaiIbj", A, disc.mass_el, jnp.eye(d)) / ctx.h
-    Ke = (K + Mass).reshape(ne, -1)
-    host = position_pattern(disc.cells, k, disc.n_nodes, d)
-    token = lu_factor(host, Ke)
+    Ke = K + Mass
+    if scene.fixed is not None:
+        free = ~scene.fixed.array[disc.cells.array]  # (e, n_en, d)
+        free = np.broadcast_to(free[:, None], (ne, k) + free.shape[1:])
+        Ke = Ke * jnp.asarray(free)[:, :, :, :, None, None, None] * jnp.asarray(free)[:, None, None, None]
+        n_held = len(_held_dofs(scene.fixed, k, disc.n_nodes, d))
+        data = jnp.concatenate([Ke.reshape(-1), jnp.full(n_held, constraint_scale(scene, ctx.h))])
+    else:
+        data = Ke.reshape(-1)
+    host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
+    token = lu_factor(host, data)
     return Tangent(token, ctx.h, jnp.asarray(False), Ainv, dGdF, dPdG)
 
 
@@ -119,14 +136,17 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns) -> Unknowns:
     from ._step import force_term
 
     k, d, disc = scheme.k, scene.dim, scene.disc
-    host = position_pattern(disc.cells, k, disc.n_nodes, d)
+    host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
     bx = b.x
     if b.g is not None:
         bg = jnp.moveaxis(b.g, 0, 2).reshape(disc.n_cells, disc.n_qp, 6 * k)
         z = jnp.einsum("eqab,eqb->eqa", tangent.Ainv, bg)
         dP = jnp.einsum("eqab,eqb->eqa", tangent.dP_dG, z)
         dP = dP.reshape(disc.n_cells, disc.n_qp, -1, 3, 3)
-        bx = bx - force_term(scheme, scene, ctx, dP)
+        coupling = force_term(scheme, scene, ctx, dP)
+        if scene.fixed is not None:
+            coupling = jnp.where(jnp.asarray(scene.fixed.array)[None], 0.0, coupling)
+        bx = bx - coupling
     dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
     if b.g is None:
         return Unknowns(dx, None)

@@ -1,0 +1,86 @@
+"""Cost of one time step: Newton and Krylov iterations, ms per step, compile time.
+
+    python benchmarks/step_cost.py [--quick]
+
+Runs eG(1) (and eG(2)) on the 2D L-shape at refinement 1 and 4 and the 3D L-shape at
+refinement 1 with h = 0.1, with both linear solvers, and writes
+benchmarks/results/step_cost.json. Timings are wall clock after compilation (median of
+repeats); compile time is the first call minus a timed call.
+"""
+
+import argparse
+import json
+import pathlib
+import platform
+import statistics
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jaxvisco as jv  # noqa: E402
+from jaxvisco._step import make_context, residual, predictor  # noqa: E402
+import equinox as eqx  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def residual_ms(scene, scheme, h):
+    ctx = make_context(scene, scene.initial_state(), 0.0, h)
+    U = predictor(scheme, scene, ctx, scene.v0)
+    f = eqx.filter_jit(lambda s, c, u: residual(scheme, s, c, u))
+    jax.block_until_ready(f(scene, ctx, U))
+    t = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(scene, ctx, U))
+        t.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(t)
+
+
+def case(scene, scheme, solver, n_steps, h=0.1, repeats=2):
+    t0 = time.perf_counter()
+    sol = jv.simulate(scene, scheme, t_end=n_steps * h, dt=h, solver=solver, save_every=n_steps)
+    first = time.perf_counter() - t0
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sol = jv.simulate(scene, scheme, t_end=n_steps * h, dt=h, solver=solver, save_every=n_steps)
+        walls.append(time.perf_counter() - t0)
+    wall = statistics.median(walls)
+    its = np.asarray(sol.newton_iterations)
+    kits = np.asarray(sol.krylov_iterations)
+    return dict(
+        integrator=scheme.name, linear_solver=solver.linear_solver, steps=n_steps, h=h,
+        dofs=int(scene.mesh.n_nodes * scene.dim), status=sol.status,
+        newton_per_step=float(its.mean()), krylov_per_newton=float(kits.sum() / max(its.sum(), 1)),
+        ms_per_step=1e3 * wall / n_steps, compile_s=first - wall,
+        residual_eval_ms=residual_ms(scene, scheme, h),
+    )
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--out", default=str(pathlib.Path(__file__).parent / "results" / "step_cost.json"))
+    a = p.parse_args(argv)
+    n = 10 if a.quick else 40
+    scenes = {"2D r1": jv.scenes.lshape(2, 1), "2D r4": jv.scenes.lshape(2, 4), "3D r1": jv.scenes.lshape(3, 1)}
+    rows = []
+    for name, scene in scenes.items():
+        for scheme in (jv.eG(1), jv.eG(2)):
+            if a.quick and scheme.k > 1:
+                continue
+            for ls in ("krylov", "direct"):
+                r = case(scene, scheme, jv.NewtonKrylov(linear_solver=ls), n)
+                r["scene"] = name
+                rows.append(r)
+                print(json.dumps(r), flush=True)
+    out = dict(machine=platform.platform(), processor=platform.processor(), jax=jax.__version__,
+               date=time.strftime("%Y-%m-%d"), cpu_count=__import__("os").cpu_count(), rows=rows)
+    pathlib.Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    pathlib.Path(a.out).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
