@@ -1,6 +1,6 @@
 """The jitted Newton–Krylov loop that solves one time element.
 
-Per iteration: one `jax.linearize` of the step residual; GMRES (lineax) on its JVP,
+Per iteration: one `jax.linearize` of the step residual; GMRES (`_krylov.gmres`) on its JVP,
 preconditioned by the exact block solve with a condensed tangent (`_tangent`); forcing
 terms after Eisenstat–Walker; a backtracking line search on the scaled residual norm.
 The tangent is formed when none fits (first step, new step size) and re-formed when the

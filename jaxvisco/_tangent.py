@@ -23,7 +23,7 @@ import numpy as np
 
 from ._sparse import HostLU, lu_factor, lu_solve
 from ._step import Unknowns, constraint_scale, nodal_fields
-from ._tensor import small_inv, vec_to_sym
+from ._tensor import small_inv, sym_to_vec, vec_to_sym
 
 
 @functools.lru_cache(maxsize=32)
@@ -81,8 +81,7 @@ def _point_tangent(scheme, material, h, F, G):
         return dP_dF.reshape(-1, 9 * k), None, None, None
 
     G0 = G[0]
-    gu = jnp.stack([jnp.stack([G[I, 0, 0], G[I, 1, 1], G[I, 2, 2], G[I, 1, 2], G[I, 0, 2], G[I, 0, 1]])
-                    for I in range(1, k + 1)])
+    gu = sym_to_vec(G[1:])
 
     def fun(Fu, gu):
         return scheme.point_kernel(material, jnp.concatenate([F0[None], Fu]),

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._quadrature import gauss_legendre
-from ._tensor import ddot, sym, sym_to_vec, vec_to_sym
+from ._tensor import ddot, sym, sym_to_vec
 from ._time_basis import time_element_matrices
 
 # Added to the denominator of eG's algorithmic factor beta: squared strain increments

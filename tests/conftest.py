@@ -8,3 +8,15 @@ os.environ["XLA_FLAGS"] = (
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Each test module compiles large programs; drop them afterwards so one process
+    running the whole suite does not accumulate them (a full run once crashed inside
+    XLA's compiler late in the suite)."""
+    yield
+    jax.clear_caches()

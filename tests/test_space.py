@@ -5,7 +5,6 @@ input errors."""
 import functools
 import os
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
