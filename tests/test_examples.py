@@ -4,7 +4,6 @@ import importlib.util
 import os
 
 import numpy as np
-import pytest
 
 EXAMPLES = os.path.join(os.path.dirname(__file__), os.pardir, "examples")
 
@@ -23,14 +22,12 @@ def test_read_mesh():
     assert abs(H[0] - 3111.93) < 0.01  # the mesh is the paper's L-shape
 
 
-@pytest.mark.slow
 def test_lshape_3d_quick():
     sol = load("lshape_3d").main(["--quick"])
     H = np.asarray(sol.energy)
     assert sol.status == "done" and np.all(np.diff(H) <= 0)
 
 
-@pytest.mark.slow
 def test_lshape_paper_quick(tmp_path):
     res = load("lshape_paper").main(["--quick", "--out", str(tmp_path)])
     t, H, status = res[("eG(1)", "large")]
