@@ -64,7 +64,7 @@ class NewtonResult(eqx.Module):
     tangent: Tangent
 
 
-def _scale(ctx, scene, scheme, R0):
+def _scale(ctx, scene, R0):
     """Momentum scale of a step: |p_0|, the step's force impulse, and a floor tied to the
     positions so that a body at rest still has a meaningful relative tolerance."""
     p = jnp.max(jnp.abs(ctx.state.p))
@@ -94,7 +94,7 @@ def _axpy(a, dU, U):
 def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -> NewtonResult:
     res = lambda U: residual(scheme, scene, ctx, U)  # noqa: E731
     R0 = res(U0)
-    sx = _scale(ctx, scene, scheme, R0)
+    sx = _scale(ctx, scene, R0)
     direct = solver.linear_solver == "direct"
     stale = direct | tangent.stale | (tangent.h != ctx.h)
 

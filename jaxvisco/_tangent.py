@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._sparse import HostLU, lu_factor, lu_solve
-from ._step import Unknowns, constraint_scale, nodal_fields
+from ._step import Unknowns, constraint_scale, force_term, nodal_fields
 from ._tensor import small_inv, sym_to_vec, vec_to_sym
 
 
@@ -132,8 +132,6 @@ def form_tangent(scheme, scene, ctx, U) -> Tangent:
 def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns) -> Unknowns:
     """Solve the linearized step equations with the condensed tangent (exact where the
     tangent was formed)."""
-    from ._step import force_term
-
     k, d, disc = scheme.k, scene.dim, scene.disc
     host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
     bx = b.x
