@@ -20,6 +20,7 @@ from ._step import end_state, end_velocity, external_work, make_context, predict
 from ._tangent import empty_tangent
 from ._tensor import small_solve
 from ._time_element import AbstractTimeElement
+from ._validation import check_finite
 
 RUNNING, FAILED, EQUILIBRIUM, DONE = 0, 1, 2, 3
 STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done"}
@@ -70,6 +71,7 @@ class Solution(eqx.Module):
     n_steps: jax.Array
     status_code: jax.Array
     integrator: str = eqx.field(static=True, default="")
+    end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
 
     @property
     def status(self):
@@ -117,7 +119,7 @@ def relative_kinetic_energy(scene: Scene, x, p):
 def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, save_every=1,
              solver: NewtonKrylov = NewtonKrylov(), save_gamma=False, stop_at_equilibrium=None,
              max_halvings=6, initial_state: Optional[State] = None, max_steps=None,
-             throw=True) -> Solution:
+             throw=True, initial_velocity=None) -> Solution:
     """Integrate a scene in time.
 
     **Arguments:**
@@ -130,8 +132,13 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
     - `stop_at_equilibrium`: a tolerance `tol`; the run ends once the kinetic energy
       relative to the rigid-body motion and the step's dissipated energy both fall
       below `tol * H_0`.
-    - `max_halvings`: how often a failed step may be halved before the run stops.
+    - `max_halvings`: how often a failed step may be halved before the run stops: the
+      smallest step tried is `h / 2**max_halvings` (after successes the sub-steps grow
+      back dyadically to `h`).
     - `initial_state`: start from this `State` instead of the scene's (restarts).
+    - `initial_velocity`: the predictor's velocity for the first step (default: the
+      velocity of the initial momenta). A restart that passes the previous run's
+      `Solution.end_velocity` repeats the uninterrupted run exactly.
     - `max_steps`: capacity of the compiled loop (default: the number of steps). Runs
       with different step counts but the same `max_steps` share one compilation.
     - `throw`: raise `SolverError` on failure (else return with `status == "failed"`).
@@ -153,10 +160,17 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
             raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
         hs = np.concatenate([hs, np.ones(int(max_steps) - n_active)])
     state0 = scene.initial_state() if initial_state is None else initial_state
+    if initial_velocity is None:
+        v0, use_v0 = jnp.zeros_like(state0.p), jnp.asarray(False)
+    else:
+        v0, use_v0 = jnp.asarray(initial_velocity, dtype=state0.p.dtype), jnp.asarray(True)
+        if v0.shape != state0.p.shape:
+            raise ValueError(f"initial_velocity must have shape {state0.p.shape}, got {v0.shape}.")
+        check_finite("initial_velocity", v0)
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs),
                jnp.asarray(n_active), int(save_every), bool(save_gamma),
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
-               int(max_halvings))
+               int(max_halvings), v0, use_v0)
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()
@@ -170,7 +184,7 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
 
 
 @eqx.filter_jit
-def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma, eq_tol, max_halvings):
+def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0):
     n_frames = 1 + -(-hs.shape[0] // save_every)
     diag0 = scene.diagnostics(state0)
     H0 = diag0["energy"]
@@ -264,7 +278,8 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
     zeros_f, zeros_i = jnp.zeros(hs.shape[0]), jnp.zeros(hs.shape[0], dtype=int)
     steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i,
                  residual=zeros_f, rejections=zeros_i)
-    init = dict(i=jnp.asarray(0), state=state0, t=t0, v=scene.velocity(state0.p), tan=empty_tangent(scheme, scene),
+    v_init = jnp.where(use_v0, v0, scene.velocity(state0.p))
+    init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene),
                 frames=frames, steps=steps, n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
                 work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))
     c = jax.lax.while_loop(cond, body, init)
@@ -274,4 +289,4 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
         free_energy=f["free_energy"], dissipated=f["dissipated"], dissipation_rate=f["dissipation_rate"],
         external_work=f["external_work"], linear_momentum=f["linear_momentum"],
         angular_momentum=f["angular_momentum"], n_saved=c["n_saved"], n_steps=c["n_done"],
-        status_code=c["status"], integrator=scheme.describe(), **c["steps"])
+        status_code=c["status"], integrator=scheme.describe(), end_velocity=c["v"], **c["steps"])
