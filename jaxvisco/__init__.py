@@ -12,6 +12,8 @@ from ._generators import box as box, lshape_mesh as lshape_mesh, rectangle as re
 from ._materials import NeoHooke as NeoHooke, ReeseGovindjee as ReeseGovindjee, paper_material as paper_material
 from ._mesh import Mesh as Mesh
 from ._newton import NewtonKrylov as NewtonKrylov
+from ._ode import SemiDiscrete as SemiDiscrete, semidiscrete as semidiscrete
+from ._results import read_restart as read_restart, read_results as read_results, resume as resume
 from ._scene import Scene as Scene, State as State
 from ._simulate import Solution as Solution, SolverError as SolverError, simulate as simulate
 from ._time_element import (
