@@ -11,7 +11,7 @@ from ._config import require_x64
 from ._krylov import pcg
 from ._materials import ReeseGovindjee
 from ._space import Discretization, StaticArray
-from ._validation import check_finite, check_positive
+from ._validation import _concrete, check_finite, check_positive
 
 
 class State(eqx.Module):
@@ -68,6 +68,7 @@ class Scene(eqx.Module):
         self.material = material
         self.density = jnp.asarray(density, dtype=float)
         self.disc = Discretization(mesh, quadrature_order, mass=mass)
+        _check_orientation(self.disc.JxW)
         shape = (mesh.n_nodes, mesh.dim)
         self.x0 = _field("positions", positions, shape, mesh.points)
         self.v0 = _field("velocities", velocities, shape, jnp.zeros(shape))
@@ -169,6 +170,23 @@ def angular_momentum(x, p):
 
 def _right_cauchy_green(F):
     return jnp.swapaxes(F, -1, -2) @ F
+
+
+def _check_orientation(JxW, tol=1e-8):
+    """Reject inverted or degenerate elements (det J <= tol * typical at a quadrature
+    point); skipped for traced meshes."""
+    j = _concrete(JxW)
+    if j is None:
+        return
+    typical = np.mean(np.abs(j))
+    worst = j.min(axis=1)
+    bad = np.flatnonzero(~(worst > tol * typical))
+    if bad.size:
+        e = bad[0]
+        kind = "inverted" if worst[e] < -tol * typical else "degenerate"
+        raise ValueError(f"element {e} is {kind}: det J * w = {worst[e]:.6g} at a quadrature point (typical "
+                         f"{typical:.6g}, accepted > {tol:g} * typical); check its node order (Mesh.validate() "
+                         "reports more).")
 
 
 def _field(name, value, shape, default):

@@ -160,6 +160,15 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
             raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
         hs = np.concatenate([hs, np.ones(int(max_steps) - n_active)])
     state0 = scene.initial_state() if initial_state is None else initial_state
+    if initial_state is not None:
+        ref = dict(x=scene.x0, p=scene.x0, gamma=scene.gamma0)
+        for name in ("x", "p", "gamma"):
+            a, b = getattr(initial_state, name), ref[name]
+            if (a is None) != (b is None) or (a is not None and jnp.shape(a) != jnp.shape(b)):
+                raise ValueError(f"initial_state.{name} must have shape {None if b is None else jnp.shape(b)} "
+                                 f"for this scene, got {None if a is None else jnp.shape(a)}.")
+            if a is not None:
+                check_finite(f"initial_state.{name}", a)
     if initial_velocity is None:
         v0, use_v0 = jnp.zeros_like(state0.p), jnp.asarray(False)
     else:

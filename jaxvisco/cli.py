@@ -77,8 +77,14 @@ def _pieces(t_start, hs):
 
 
 def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=None, writer=None,
-                save_gamma=False, label="", quiet=False, stream=None):
+                save_gamma=False, label="", quiet=False, stream=None, initial_state=None, initial_velocity=None,
+                should_stop=None):
     """Integrate over the steps `hs` in chunks of `chunk` steps, appending to `writer`.
+
+    Each chunk starts from the previous chunk's last state and predictor velocity, so
+    the chunks continue one run; `initial_state`/`initial_velocity` continue a saved run
+    (a restart: its first frame is not written again). `should_stop()` is asked after
+    every chunk; when true the run ends with status "interrupted".
 
     Returns a dict: `t`, `energy` (all saved frames), `status`, `steps`, `wall`,
     `newton` (total iterations), `state` (last state).
@@ -91,7 +97,8 @@ def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=No
     solver = solver or jv.NewtonKrylov()
     hs = np.asarray(hs, dtype=float)
     n = len(hs)
-    state, t = None, float(t0)
+    state, t, v = initial_state, float(t0), initial_velocity
+    resumed = initial_state is not None
     ts, Hs = [], []
     status, done, newton = "done", 0, 0
     start = time.perf_counter()
@@ -99,16 +106,16 @@ def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=No
         print(f"{label}: {n} steps in chunks of {chunk} (the first chunk compiles, ~30-60 s)", file=stream, flush=True)
     extra = {}
     if "max_steps" in inspect.signature(jv.simulate).parameters:
-        extra["max_steps"] = min(chunk, n)  # a shorter last chunk reuses the compiled program
+        extra["max_steps"] = chunk  # a shorter last chunk reuses the compiled program
     for i0 in range(0, n, chunk):
         h = hs[i0:i0 + chunk]
         dt, t_end = _pieces(t, h)
         sol = jv.simulate(scene, integrator, t_end=t_end, dt=dt, t0=t, save_every=save_every, solver=solver,
-                          save_gamma=True, initial_state=state, throw=False, **extra)
+                          save_gamma=True, initial_state=state, throw=False, initial_velocity=v, **extra)
         first = state is None
         if writer is not None:
             writer.append(sol, skip_first=not first, gamma=save_gamma)
-        s = 0 if first else 1
+        s = 0 if (first or (resumed and not ts)) else 1
         ts.extend(np.asarray(sol.t)[s:].tolist())
         Hs.extend(np.asarray(sol.energy)[s:].tolist())
         ns = int(len(np.asarray(sol.step_t)))
@@ -116,6 +123,7 @@ def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=No
         its = np.asarray(sol.newton_iterations)
         newton += int(its.sum())
         state = sol.state(-1)
+        v = sol.end_velocity
         t = float(np.asarray(sol.t)[-1])
         if not quiet:
             print(f"{label}: t = {t:9.4f}  step {done:6d}/{n}  newton/step {its.mean() if ns else 0:4.1f}"
@@ -125,6 +133,9 @@ def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=No
             break
         if sol.status == "equilibrium":
             status = "equilibrium"
+            break
+        if should_stop is not None and should_stop() and i0 + chunk < n:
+            status = "interrupted"
             break
     state = jv.State(jnp.asarray(state.x), jnp.asarray(state.p), state.gamma)
     return dict(t=np.asarray(ts), energy=np.asarray(Hs), status=status, steps=done, newton=newton,
@@ -222,6 +233,9 @@ def _paper(args):
             try:
                 r = run_chunked(scene, integrator, hs, chunk=c, writer=w, label=label, quiet=args.quiet)
                 status = r["status"]
+            except KeyboardInterrupt:
+                status = "interrupted"
+                raise
             finally:
                 w.close(status=status)
             results.append((scheme_name, sched_name, r))
@@ -259,17 +273,83 @@ def _paper(args):
     return 0
 
 
+_RESUMABLE = ("t_end", "quiet", "resume")
+
+
+def _resume_args(args):
+    """The options of the run stored in `args.resume`, with `--t-end` and `--quiet`
+    taken from the command line."""
+    from jaxvisco._results import read_restart
+
+    given = {k: v for k, v in vars(args).items() if k not in ("func",) + _RESUMABLE}
+    defaults = {k: v for k, v in vars(build_parser().parse_args(["run"])).items() if k in given}
+    changed = sorted(k for k, v in given.items() if v != defaults[k])
+    if changed:
+        raise ValueError(f"with --resume the run's options come from the results file; only --t-end and --quiet "
+                         f"may be given, got --{', --'.join(c.replace('_', '-') for c in changed)}.")
+    restart = read_restart(args.resume)
+    params = restart.attrs.get("parameters")
+    if not isinstance(params, dict) or "integrator" not in params:
+        raise ValueError(f"{args.resume!r} was not written by `jaxvisco run` (no run parameters stored); "
+                         "continue it from Python with jaxvisco.resume.")
+    stored = argparse.Namespace(**{**defaults, **{k: v for k, v in params.items() if k in defaults}})
+    stored.t_end = params.get("t_end") if args.t_end is None else args.t_end
+    stored.quiet, stored.out, stored.resume = args.quiet, args.resume, args.resume
+    return stored, restart
+
+
+class _StopOnSigint:
+    """First Ctrl-C: finish the chunk under way, write it, stop ("interrupted"); a second
+    one interrupts at once (KeyboardInterrupt)."""
+
+    def __init__(self, quiet):
+        self.flag, self.quiet, self.old = False, quiet, None
+
+    def __call__(self):
+        return self.flag
+
+    def _handler(self, signum, frame):
+        import signal
+
+        self.flag = True
+        signal.signal(signal.SIGINT, self.old)
+        print("jaxvisco: interrupt: stopping after the chunk under way (Ctrl-C again to stop at once)",
+              file=sys.stderr, flush=True)
+
+    def __enter__(self):
+        import signal
+
+        try:
+            self.old = signal.signal(signal.SIGINT, self._handler)
+        except ValueError:  # not the main thread
+            self.old = None
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+
+        if self.old is not None:
+            signal.signal(signal.SIGINT, self.old)
+
+
 def _run(args):
     import jaxvisco as jv
     from jaxvisco._results import ResultsWriter, scene_attributes
     from jaxvisco._schedule import step_sizes
 
+    restart = None
+    if args.resume is not None:
+        args, restart = _resume_args(args)
     if args.dt is not None and args.schedule is not None:
         raise ValueError("give either --dt or --schedule, not both.")
     if args.mesh is not None and not os.path.isfile(args.mesh):
         raise FileNotFoundError(f"mesh file {args.mesh!r} does not exist.")
     if args.save_every < 1:
         raise ValueError(f"--save-every must be >= 1, got {args.save_every}.")
+    if args.chunk < 1:
+        raise ValueError(f"--chunk must be >= 1, got {args.chunk}.")
+    if args.t_end is not None and not math.isfinite(args.t_end):
+        raise ValueError(f"--t-end must be a finite time > 0, got {args.t_end!r}.")
     integrator = make_integrator(args.integrator, args.order)
     scene = make_scene(dim=args.dim, refinement=args.refinement, element=args.element, mesh=args.mesh,
                        lam=args.lam, mu=args.mu, density=args.density, eta_dev=args.eta_dev, eta_vol=args.eta_vol)
@@ -281,15 +361,38 @@ def _run(args):
         t_end = 1.0 if args.t_end is None else args.t_end
     hs = step_sizes(0.0, t_end, dt)
     c = chunk_size([len(hs)], target=args.chunk, save_every=args.save_every)
+    t0, state0, v0 = 0.0, None, None
+    if restart is not None:
+        done = restart.n_steps
+        t_done = float(np.sum(hs[:done]))
+        if done >= len(hs) or restart.t >= t_end * (1 - 1e-12):
+            raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} (t_end = {t_end:.6g}); "
+                             "give a later --t-end to continue it.")
+        if not math.isclose(t_done, restart.t, rel_tol=1e-9, abs_tol=1e-12):
+            raise ValueError(f"{args.resume!r}: its {done} steps end at t = {restart.t:.17g}, but the stored schedule "
+                             f"puts step {done} at t = {t_done:.17g}; it cannot be continued with --t-end {t_end:g}.")
+        if restart.state.x.shape != scene.initial_state().x.shape:
+            raise ValueError(f"{args.resume!r}: stored state has shape {restart.state.x.shape}, the scene has "
+                             f"{scene.initial_state().x.shape}.")
+        hs, t0, state0, v0 = hs[done:], restart.t, restart.state, restart.velocity
     params = {k: v for k, v in vars(args).items() if k != "func"}
+    params["t_end"] = t_end
     attrs = dict(scene_attributes(scene), scene=("mesh:" + args.mesh) if args.mesh else "lshape",
                  integrator=integrator.describe(), parameters=params)
-    w = ResultsWriter(args.out, scene.mesh, attrs)
+    if restart is not None:
+        w = ResultsWriter(args.out, append=True, attrs={"parameters": params})
+    else:
+        w = ResultsWriter(args.out, scene.mesh, attrs)
     status = "failed"
     try:
-        r = run_chunked(scene, integrator, hs, chunk=c, save_every=args.save_every, writer=w,
-                        save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet)
+        with _StopOnSigint(args.quiet) as stop:
+            r = run_chunked(scene, integrator, hs, t0=t0, chunk=c, save_every=args.save_every, writer=w,
+                            save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet,
+                            initial_state=state0, initial_velocity=v0, should_stop=stop)
         status = r["status"]
+    except KeyboardInterrupt:
+        status = "interrupted"
+        raise
     finally:
         w.close(status=status)
     print(f"{integrator.name}: status={status} H0={r['energy'][0]:.8g} H_end={r['energy'][-1]:.8g} "
@@ -297,6 +400,10 @@ def _run(args):
     if status == "failed":
         raise jv.SolverError(f"{integrator.name}: the step after t = {r['t_last']:.6g} did not converge; "
                              f"results up to it are in {args.out}", r["t_last"], r["state"], None)
+    if status == "interrupted":
+        print(f"jaxvisco: interrupted at t = {r['t_last']:.6g}; continue with: jaxvisco run --resume {args.out}",
+              file=sys.stderr, flush=True)
+        return 130
     return 0
 
 
@@ -386,6 +493,9 @@ def build_parser():
     r.add_argument("--chunk", type=int, default=50, help="steps per compiled chunk (progress granularity; default 50)")
     r.add_argument("--out", default="jaxvisco-run.h5", help="results file (default jaxvisco-run.h5); an .xdmf goes beside it")
     r.add_argument("--quiet", action="store_true", help="no progress lines")
+    r.add_argument("--resume", default=None, metavar="RESULTS.h5",
+                   help="continue the run stored in RESULTS.h5 (appending to it) with its own options; "
+                   "--t-end extends it")
     r.set_defaults(func=_run)
 
     pl = sub.add_parser("plot", help="plot energy, energy balance and momenta from a results file",
