@@ -1,7 +1,9 @@
 """Results files: append-and-flush, read back, XDMF beside the HDF5 file."""
 
+import json
 import os
 import shutil
+import subprocess
 import xml.etree.ElementTree as ET
 from types import SimpleNamespace
 
@@ -81,3 +83,96 @@ def test_read_errors(tmp_path):
     bad.write_text("not hdf5")
     with pytest.raises(ValueError, match="bad.h5"):
         read_results(bad)
+
+
+def test_xdmf_extended_in_place_equals_rewrite(tmp_path, mesh):
+    path = tmp_path / "r.h5"
+    with ResultsWriter(path, mesh) as w:
+        w.append(fake_solution(3, 0.0, mesh))
+        w.append(fake_solution(3, 0.2, mesh), skip_first=True)
+    grown = (tmp_path / "r.xdmf").read_text()
+    write_xdmf(str(tmp_path / "again.xdmf"), str(path))
+    assert grown == (tmp_path / "again.xdmf").read_text()
+    assert len(ET.fromstring(grown).findall(".//Grid[@GridType='Uniform']")) == 5
+
+
+def test_nonfinite_frames_never_written(tmp_path, mesh):
+    sol = fake_solution(5, 0.0, mesh)
+    sol.x = sol.x.copy()
+    sol.x[3, 0, 0] = np.nan
+    path = tmp_path / "r.h5"
+    w = ResultsWriter(path, mesh)
+    w.append(sol)
+    w.close(status="done")
+    r = read_results(path)
+    assert r["t"].shape == (3,) and np.all(np.isfinite(r["x"]))
+    assert r["attrs"]["status"] == "failed"
+    assert np.all(r["step_t"] <= r["t"][-1])
+
+
+def test_reads_only_committed_frames(tmp_path, mesh):
+    """A kill between growing the datasets and raising the counters exposes nothing."""
+    path = tmp_path / "r.h5"
+    with ResultsWriter(path, mesh) as w:
+        w.append(fake_solution(3, 0.0, mesh))
+        w._append("time", np.array([9.0]))  # half an append: datasets grown, counters not
+        w._append("nodal/x", np.zeros((1,) + mesh.points.shape))
+    r = read_results(path)
+    assert r["t"].tolist() == pytest.approx([0.0, 0.1, 0.2]) and r["x"].shape[0] == 3
+    w = ResultsWriter(path, append=True)  # a restart cuts the half-written frame away
+    w.close()
+    with h5py.File(path, "r") as f:
+        assert f["time"].shape == (3,) and f["nodal/x"].shape[0] == 3
+
+
+PVPYTHON = shutil.which("pvpython")
+_PV_SCRIPT = r"""
+import json, sys
+from paraview import simple, servermanager
+out = {}
+for name in ("XDMFReader", "Xdmf3ReaderS", "Xdmf3ReaderT"):
+    if name == "XDMFReader":
+        r = simple.XDMFReader(FileNames=[sys.argv[1]])
+    else:
+        r = getattr(simple, name)(FileName=[sys.argv[1]])
+    r.UpdatePipelineInformation()
+    ts = list(r.TimestepValues)
+    r.UpdatePipeline(ts[-1])
+    d = servermanager.Fetch(r)
+    if d.IsA("vtkMultiBlockDataSet"):
+        d = d.GetBlock(0)
+    pd = d.GetPointData()
+    out[name] = dict(times=ts, points=d.GetNumberOfPoints(), cells=d.GetNumberOfCells(), bounds=list(d.GetBounds()),
+                     arrays=sorted(pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())))
+print("RESULT" + json.dumps(out))
+"""
+
+
+@pytest.mark.skipif(PVPYTHON is None, reason="ParaView's pvpython is not installed")
+@pytest.mark.parametrize("dim", [2, 3])
+def test_paraview_opens_xdmf(tmp_path, dim):
+    """Both ParaView XDMF readers open the time series: number of steps, points, cells,
+    point data, and the deformed bounds of the last frame."""
+    m = jv.rectangle(3, 2, lx=2.0, ly=1.0) if dim == 2 else jv.box(2, 2, 1, 2.0, 1.0, 0.5)
+    path = tmp_path / "run" / "r.h5"
+    with ResultsWriter(path, m) as w:
+        w.append(fake_solution(4, 0.0, m))
+        w.append(fake_solution(4, 0.3, m), skip_first=True)
+    x = read_results(path)["x"][-1]
+    script = tmp_path / "pv.py"
+    script.write_text(_PV_SCRIPT)
+    p = subprocess.run([PVPYTHON, "--force-offscreen-rendering", str(script), str(path.with_suffix(".xdmf"))],
+                       capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    line = [s for s in p.stdout.splitlines() if s.startswith("RESULT")]
+    assert p.returncode == 0 and line, p.stdout[-2000:] + p.stderr[-2000:]
+    res = json.loads(line[0][len("RESULT"):])
+    lo = np.zeros(3)
+    hi = np.zeros(3)
+    lo[:dim], hi[:dim] = x.min(axis=0), x.max(axis=0)
+    for name, r in res.items():
+        assert len(r["times"]) == 7, name
+        np.testing.assert_allclose(r["times"], 0.1 * np.arange(7), atol=1e-12, err_msg=name)
+        assert r["points"] == m.n_nodes and r["cells"] == m.n_cells, name
+        np.testing.assert_allclose(np.asarray(r["bounds"]).reshape(3, 2), np.stack([lo, hi], 1), atol=1e-12,
+                                   err_msg=name)
+        assert {"displacement", "momentum"} <= set(r["arrays"]), name
