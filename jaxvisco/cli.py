@@ -281,13 +281,13 @@ def _resume_args(args):
     taken from the command line."""
     from jaxvisco._results import read_restart
 
+    restart = read_restart(args.resume)
     given = {k: v for k, v in vars(args).items() if k not in ("func",) + _RESUMABLE}
     defaults = {k: v for k, v in vars(build_parser().parse_args(["run"])).items() if k in given}
     changed = sorted(k for k, v in given.items() if v != defaults[k])
     if changed:
         raise ValueError(f"with --resume the run's options come from the results file; only --t-end and --quiet "
                          f"may be given, got --{', --'.join(c.replace('_', '-') for c in changed)}.")
-    restart = read_restart(args.resume)
     params = restart.attrs.get("parameters")
     if not isinstance(params, dict) or "integrator" not in params:
         raise ValueError(f"{args.resume!r} was not written by `jaxvisco run` (no run parameters stored); "
