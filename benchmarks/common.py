@@ -1,0 +1,99 @@
+"""Shared helpers of the benchmark scripts: scenes, machine description, timing, JSON."""
+
+import json
+import os
+import pathlib
+import platform
+import statistics
+import subprocess
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaxvisco as jv  # noqa: E402
+from jaxvisco.scenes._lshape import PAPER  # noqa: E402
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+
+# Every number in the results files was measured on a CPU shared with other jobs.
+CONDITIONS = ("wall-clock times measured on a shared CPU with other jobs (other engineers' builds and tests) "
+              "running at the same time; medians of repeats where repeated; compile time = first call minus "
+              "a timed call")
+
+
+def lshape(dim=2, refinement=1, element=None, mass="lumped", viscous=True, lam=PAPER["lam"], mu=PAPER["mu"],
+           eta_dev=PAPER["eta_dev"], eta_vol=PAPER["eta_vol"]):
+    """The paper's L-shape (as `jaxvisco.scenes.lshape`) with a choice of mass matrix."""
+    mesh = jv.lshape_mesh(dim=dim, refinement=refinement, element=element)
+    nh = jv.NeoHooke(lam=lam, mu=mu)
+    material = jv.ReeseGovindjee(nh, jv.NeoHooke(lam=PAPER["lam"], mu=PAPER["mu"]) if viscous else None,
+                                 eta_dev=eta_dev, eta_vol=eta_vol)
+    X = mesh.points
+    vT = jnp.asarray(PAPER["v_translation"], dtype=float)
+    w = jnp.asarray(PAPER["omega"], dtype=float)
+    if dim == 2:
+        v0 = vT[:2] + w[2] * jnp.stack([-X[:, 1], X[:, 0]], axis=-1)
+    else:
+        v0 = vT + jnp.cross(w, X)
+    return jv.Scene(mesh, material, PAPER["density"], velocities=v0, mass=mass)
+
+
+def machine():
+    model = platform.processor()
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        for line in out.splitlines():
+            if line.startswith("Model name:"):
+                model = line.split(":", 1)[1].strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return dict(cpu_model=model, cores=os.cpu_count(), platform=platform.platform(), python=platform.python_version(),
+                jax=jax.__version__, date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                load_average_at_start=list(os.getloadavg()), conditions=CONDITIONS)
+
+
+def timed(fn, repeats=3, budget_s=None):
+    """Call `fn()` once (compile + run), then `repeats` more times; returns
+    (result of the last call, first-call seconds, median of the timed calls, all times).
+    With `budget_s`, stop repeating once the timed calls have used that much."""
+    t0 = time.perf_counter()
+    out = fn()
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+        if budget_s is not None and sum(times) > budget_s:
+            break
+    wall = statistics.median(times) if times else first
+    return out, first, wall, times
+
+
+def write_json(name, data):
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    data = dict(data)
+    if "machine" in data:
+        data["machine"]["load_average_at_end"] = list(os.getloadavg())
+    path = RESULTS / name
+    path.write_text(json.dumps(data, indent=1, default=_default))
+    print(f"wrote {path}", flush=True)
+    return path
+
+
+def _default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def rel(a, b):
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))

@@ -1,0 +1,312 @@
+"""Work–precision: wall time against error on the 2D L-shape, jaxvisco against ODE peers.
+
+    python benchmarks/work_precision.py [--quick] [--refinements 1,2] [--t-end 10]
+
+The 2D L-shape (refinement 1 and 2) with a *lumped* mass matrix for every method (the
+peers need a sparse Jacobian, and with the consistent mass ẋ = M⁻¹p makes it dense), over
+t ∈ [0, T]. Error = max(relative error of the positions at T, relative error of H(T))
+against a reference: eG(3) with a tiny step, cross-checked by scipy Radau at rtol 1e-12
+(their difference is reported). Methods: cG(1..3), eG(1..3), Newmark, Midpoint over a
+range of steps; scipy `solve_ivp` Radau and BDF (exact sparse Jacobian from
+`jaxvisco.semidiscrete`), diffrax Kvaerno5 and Kvaerno3 (PID step control, their default
+root finder: a dense Jacobian by forward AD, LU by lineax — diffrax has no sparse path)
+over ranges of rtol = atol. Wall time is measured after compilation (median of repeats);
+compile time is reported separately. Writes benchmarks/results/work_precision.json and
+work_precision.png.
+"""
+
+import argparse
+import json
+import math
+import pathlib
+import subprocess
+import sys
+import tempfile
+import time
+
+from common import RESULTS, jv, lshape, machine, rel, timed, write_json  # noqa: I001
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.integrate import solve_ivp  # noqa: E402
+
+TARGET = 1e-6
+
+
+def _schemes():
+    return {"cG(1)": jv.cG(1), "cG(2)": jv.cG(2), "cG(3)": jv.cG(3), "eG(1)": jv.eG(1), "eG(2)": jv.eG(2),
+            "eG(3)": jv.eG(3), "Newmark": jv.Newmark(), "Midpoint": jv.Midpoint()}
+
+
+def _errors(x, H, ref):
+    ex = rel(x, ref["x"])
+    eH = abs(float(H) - ref["H"]) / abs(ref["H"])
+    return ex, eH, max(ex, eH)
+
+
+def run_jaxvisco(scene, name, scheme, hs, T, ref, cap, budget_s, repeats):
+    rows = []
+    for h in hs:
+        n = int(round(T / h))
+
+        def go():
+            return jv.simulate(scene, scheme, t_end=T, dt=h, save_every=cap, max_steps=cap, throw=False)
+
+        sol, first, wall, times = timed(go, repeats=repeats, budget_s=budget_s / 4)
+        ok = sol.status == "done"
+        ex, eH, e = _errors(sol.x[-1], sol.energy[-1], ref) if ok else (math.nan,) * 3
+        row = dict(method=name, family="jaxvisco", h=h, steps=n, status=sol.status, error_x=ex, error_H=eH, error=e,
+                   wall_s=wall, times_s=times, compile_s=first - wall,
+                   newton_per_step=float(np.mean(np.asarray(sol.newton_iterations))),
+                   krylov_per_step=float(np.mean(np.asarray(sol.krylov_iterations))))
+        print(f"  {name:9s} h={h:<8g} err={e:.3e} (x {ex:.2e}, H {eH:.2e}) wall={wall:.3f}s "
+              f"first={first:.1f}s {sol.status}", flush=True)
+        rows.append(row)
+        if wall > budget_s:
+            print(f"  {name}: {wall:.1f}s > budget {budget_s}s, smaller steps skipped", flush=True)
+            break
+    return rows
+
+
+def run_scipy(ode, method, tols, T, ref, budget_s, repeats):
+    rows = []
+    for tol in tols:
+        def go():
+            return solve_ivp(ode.fun, (0.0, T), ode.y0, method=method, jac=ode.jac, rtol=tol, atol=tol)
+
+        r, first, wall, times = timed(go, repeats=repeats, budget_s=budget_s / 4)
+        y = r.y[:, -1]
+        ok = bool(r.success)
+        ex, eH, e = _errors(ode.unpack(y).x, ode.energy(y), ref) if ok else (math.nan,) * 3
+        rows.append(dict(method=f"scipy {method}", family="peer", rtol=tol, atol=tol, steps=int(r.t.size - 1),
+                         nfev=int(r.nfev), njev=int(r.njev), nlu=int(r.nlu), status="done" if ok else r.message,
+                         error_x=ex, error_H=eH, error=e, wall_s=wall, times_s=times))
+        print(f"  scipy {method:5s} tol={tol:<8g} err={e:.3e} wall={wall:.3f}s steps={r.t.size - 1} "
+              f"nfev={r.nfev} nlu={r.nlu}", flush=True)
+        if wall > budget_s:
+            print(f"  scipy {method}: {wall:.1f}s > budget {budget_s}s, tighter tolerances skipped", flush=True)
+            break
+    return rows
+
+
+def run_diffrax(ode, name, tols, T, ref, budget_s, repeats, worker_timeout_s, refinement):
+    """diffrax in a subprocess (its implicit solvers can take far longer than the budget;
+    a subprocess can be stopped at a wall-clock limit, a running XLA program cannot)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        ref_path = pathlib.Path(tmp) / "ref.npz"
+        np.savez(ref_path, x=ref["x"], H=ref["H"])
+        cmd = [sys.executable, __file__, "--diffrax-worker", name, "--refinements", str(refinement), "--t-end", str(T),
+               "--tols", ",".join(map(str, tols)), "--budget", str(budget_s), "--repeats", str(repeats),
+               "--ref", str(ref_path)]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+        rows, t0 = [], time.perf_counter()
+        try:
+            out, _ = proc.communicate(timeout=worker_timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
+        timed_out = time.perf_counter() - t0 >= worker_timeout_s
+        for line in out.splitlines():
+            if line.startswith("ROW "):
+                rows.append(json.loads(line[4:]))
+            else:
+                print(line, flush=True)
+        done = {r["rtol"] for r in rows}
+        for tol in tols:
+            if tol not in done:
+                rows.append(dict(method=f"diffrax {name}", family="peer", rtol=tol, atol=tol,
+                                 status=(f"not finished: worker stopped at the {worker_timeout_s:.0f} s limit"
+                                         if timed_out else "skipped (budget)"),
+                                 error=math.nan, error_x=math.nan, error_H=math.nan, wall_s=math.nan))
+                if timed_out:
+                    print(f"  diffrax {name} tol={tol:g}: stopped at the {worker_timeout_s:.0f} s limit", flush=True)
+                    timed_out = False  # the tighter ones were never started
+        return rows
+
+
+def diffrax_worker(name, refinement, T, tols, budget_s, repeats, ref_path, max_steps=1_000_000):
+    import diffrax as dfx
+
+    z = np.load(ref_path)
+    ref = dict(x=z["x"], H=float(z["H"]))
+    ode = jv.semidiscrete(lshape(2, refinement, mass="lumped"))
+    solver = {"Kvaerno5": dfx.Kvaerno5(), "Kvaerno3": dfx.Kvaerno3(), "Tsit5": dfx.Tsit5()}[name]
+    term = dfx.ODETerm(ode.vector_field)
+
+    @jax.jit
+    def solve(y0, tol):
+        s = dfx.diffeqsolve(term, solver, 0.0, T, 1e-3, y0, stepsize_controller=dfx.PIDController(rtol=tol, atol=tol),
+                            saveat=dfx.SaveAt(t1=True), max_steps=max_steps, throw=False)
+        return s.ys[-1], s.stats["num_steps"], s.stats["num_rejected_steps"], s.result == dfx.RESULTS.successful
+
+    y0 = jnp.asarray(ode.y0)
+    t0 = time.perf_counter()
+    compiled = solve.lower(y0, tols[0]).compile()
+    compile_s = time.perf_counter() - t0
+    print(f"  diffrax {name}: compiled in {compile_s:.1f}s", flush=True)
+    for tol in tols:
+        out, first, wall, times = timed(lambda: jax.block_until_ready(compiled(y0, tol)), repeats=repeats,
+                                        budget_s=budget_s / 4)
+        y, steps, rejected, ok = out
+        ok = bool(ok)
+        ex, eH, e = _errors(ode.unpack(y).x, ode.energy(y), ref) if ok else (math.nan,) * 3
+        row = dict(method=f"diffrax {name}", family="peer", rtol=tol, atol=tol, steps=int(steps),
+                   rejected=int(rejected), status="done" if ok else "failed", error_x=ex, error_H=eH, error=e,
+                   wall_s=wall, times_s=times, compile_s=compile_s,
+                   jacobian="explicit" if name == "Tsit5" else "dense (forward AD), lineax LU")
+        print(f"  diffrax {name} tol={tol:<8g} err={e:.3e} wall={wall:.3f}s steps={int(steps)}", flush=True)
+        print("ROW " + json.dumps(row), flush=True)
+        if wall > budget_s:
+            print(f"  diffrax {name}: {wall:.1f}s > budget {budget_s}s, tighter tolerances skipped", flush=True)
+            break
+
+
+def interpolate_at(rows, target=TARGET):
+    """Wall time at `target` error, log–log interpolated along the runs in order of cost."""
+    pts = sorted((r["wall_s"], r["error"]) for r in rows if np.isfinite(r.get("error", np.nan)) and r["error"] > 0)
+    for (w0, e0), (w1, e1) in zip(pts, pts[1:]):
+        if (e0 - target) * (e1 - target) <= 0 and e0 != e1:
+            s = (math.log(target) - math.log(e0)) / (math.log(e1) - math.log(e0))
+            return math.exp(math.log(w0) + s * (math.log(w1) - math.log(w0)))
+    return None
+
+
+def plot(data, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(data["scenes"])
+    fig, axes = plt.subplots(1, len(scenes), figsize=(7 * len(scenes), 5.5), squeeze=False)
+    for ax, key in zip(axes[0], scenes):
+        runs = data["scenes"][key]["runs"]
+        for m in dict.fromkeys(r["method"] for r in runs):
+            pts = sorted((r["wall_s"], r["error"]) for r in runs if r["method"] == m and np.isfinite(r["error"]))
+            if not pts:
+                continue
+            w, e = zip(*pts)
+            peer = m.startswith(("scipy", "diffrax"))
+            ax.loglog(w, e, "s--" if peer else "o-", label=m, lw=1.2, ms=4)
+        ax.axhline(TARGET, color="gray", lw=0.6, ls=":")
+        d = data["scenes"][key]
+        ax.set_title(f"{key} ({d['dofs']} unknowns in y), t in [0, {data['settings']['t_end']:g}]")
+        ax.set_xlabel("wall time after compilation [s]")
+        ax.set_ylabel("error (max of rel. positions, rel. H at T)")
+        ax.grid(True, which="both", lw=0.3)
+        ax.legend(fontsize=7, ncol=2)
+    fig.suptitle("Work-precision, lumped mass, shared 2-core CPU (other jobs running)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}", flush=True)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="refinement 1, t in [0, 1], few methods (< 3 min)")
+    p.add_argument("--refinements", default=None)
+    p.add_argument("--t-end", type=float, default=None)
+    p.add_argument("--methods", default=None, help="comma list to restrict (e.g. eG(2),scipy Radau)")
+    p.add_argument("--budget", type=float, default=None, help="seconds per run beyond which finer runs are skipped")
+    p.add_argument("--out", default="work_precision")
+    p.add_argument("--diffrax-worker", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--tols", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--repeats", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--ref", default=None, help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.diffrax_worker:
+        diffrax_worker(a.diffrax_worker, int(a.refinements), a.t_end, [float(t) for t in a.tols.split(",")],
+                       a.budget, a.repeats, a.ref)
+        return
+    quick = a.quick
+    T = a.t_end if a.t_end is not None else (1.0 if quick else 10.0)
+    refinements = [int(r) for r in (a.refinements or ("1" if quick else "1,2")).split(",")]
+    budget = a.budget if a.budget is not None else (8.0 if quick else 90.0)
+    repeats = 2 if quick else 3
+    worker_timeout = 70.0 if quick else 4 * budget  # wall-clock limit of one diffrax solver's subprocess
+    schemes = _schemes()
+    order2 = [0.1, 0.05, 0.025, 0.0125, 0.00625]
+    order4 = [0.2, 0.1, 0.05, 0.025, 0.0125]
+    order6 = [0.4, 0.2, 0.1, 0.05, 0.025]
+    hs = {"cG(1)": order2, "eG(1)": order2, "Newmark": order2, "Midpoint": order2,
+          "cG(2)": order4, "eG(2)": order4, "cG(3)": order6, "eG(3)": order6}
+    tols = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
+    peers = ["scipy Radau", "scipy BDF", "diffrax Kvaerno5", "diffrax Kvaerno3", "diffrax Tsit5"]
+    ref_scheme, ref_h, ref_tol = "eG(3)", 0.005, 1e-12
+    if quick:
+        schemes = {k: schemes[k] for k in ("eG(1)", "eG(2)")}
+        hs = {"eG(1)": [0.05, 0.025], "eG(2)": [0.1, 0.05, 0.025]}
+        tols = [1e-4, 1e-6, 1e-8]
+        peers = ["scipy Radau", "scipy BDF", "diffrax Kvaerno5", "diffrax Tsit5"]
+        ref_scheme, ref_h, ref_tol = "eG(2)", 0.0025, 1e-9
+    if a.methods:
+        keep = set(a.methods.split(","))
+        schemes = {k: v for k, v in schemes.items() if k in keep}
+        peers = [m for m in peers if m in keep]
+
+    data = dict(machine=machine(), settings=dict(
+        quick=quick, t_end=T, mass="lumped (HRZ) for every method, jaxvisco included",
+        error="max(||x - x_ref|| / ||x_ref||, |H - H_ref| / |H_ref|) at t_end (both also reported)",
+        jaxvisco_solver="NewtonKrylov() defaults (rtol 1e-10, GMRES with the condensed-tangent preconditioner)",
+        peers="rtol = atol; scipy with jac=ode.jac (sparse CSC, exact); diffrax PIDController, default root "
+              "finder (VeryChord, dense Jacobian by jacfwd, LU): diffrax/lineax have no sparse Jacobian path "
+              "(a lineax GMRES root-finder solver failed to trace with diffrax 0.7.2 / lineax 0.1.1); diffrax "
+              "runs in a subprocess stopped at a wall-clock limit; diffrax Tsit5 (explicit) added for reference",
+        repeats=repeats, budget_s=budget, target_error=TARGET), scenes={})
+    for r in refinements:
+        key = f"2D L-shape r{r}"
+        scene = lshape(2, r, mass="lumped")
+        ode = jv.semidiscrete(scene)
+        print(f"{key}: {ode.n} unknowns (x {ode.n_x}, p {ode.n_x}, Gamma {ode.n_g})", flush=True)
+        # Reference, and the Radau cross-check.
+        cap_ref = int(round(T / ref_h))
+        if ref_scheme in hs:
+            cap_ref = max(cap_ref, max(int(round(T / h)) for h in hs[ref_scheme]))
+        t0 = time.perf_counter()
+        sol = jv.simulate(scene, _schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref, max_steps=cap_ref,
+                          solver=jv.NewtonKrylov(rtol=1e-12))
+        ref_wall = time.perf_counter() - t0
+        ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]))
+        print(f"  reference {ref_scheme} h={ref_h}: H(T)={ref['H']:.12g}, {ref_wall:.1f}s", flush=True)
+        jax.block_until_ready(ode.rhs(0.0, ode.y0))
+        ode.jac(0.0, ode.y0)
+        t0 = time.perf_counter()
+        rr = solve_ivp(ode.fun, (0.0, T), ode.y0, method="Radau", jac=ode.jac, rtol=ref_tol, atol=ref_tol)
+        radau_wall = time.perf_counter() - t0
+        yr = rr.y[:, -1]
+        check = dict(radau_rtol=ref_tol, radau_success=bool(rr.success), radau_steps=int(rr.t.size - 1),
+                     radau_wall_s=radau_wall, diff_x=rel(ode.unpack(yr).x, ref["x"]),
+                     diff_H=abs(float(ode.energy(yr)) - ref["H"]) / abs(ref["H"]))
+        print(f"  Radau rtol={ref_tol}: diff x {check['diff_x']:.2e}, H {check['diff_H']:.2e}, "
+              f"{rr.t.size - 1} steps, {radau_wall:.1f}s", flush=True)
+        runs = []
+        for name, scheme in schemes.items():
+            cap = max(int(round(T / h)) for h in hs[name])
+            if name == ref_scheme:
+                cap = max(cap, cap_ref)  # one compile serves the reference and these runs
+            runs += run_jaxvisco(scene, name, scheme, hs[name], T, ref, cap, budget, repeats)
+        for m in peers:
+            lib, method = m.split()
+            if lib == "scipy":
+                runs += run_scipy(ode, method, tols, T, ref, budget, repeats)
+            else:
+                runs += run_diffrax(ode, method, tols, T, ref, budget, repeats, worker_timeout, r)
+        at = {m: interpolate_at([x for x in runs if x["method"] == m]) for m in dict.fromkeys(x["method"] for x in runs)}
+        jv_best = {m: w for m, w in at.items() if w is not None and not m.startswith(("scipy", "diffrax"))}
+        best = min(jv_best, key=jv_best.get) if jv_best else None
+        speedup = {m: (w / jv_best[best] if (w is not None and best) else None)
+                   for m, w in at.items() if m.startswith(("scipy", "diffrax"))}
+        data["scenes"][key] = dict(
+            refinement=r, dofs=ode.n, n_x=ode.n_x, n_gamma=ode.n_g,
+            reference=dict(scheme=ref_scheme, h=ref_h, newton_rtol=1e-12, H=ref["H"], wall_s=ref_wall, **check),
+            runs=runs, wall_at_target_s=at, best_jaxvisco=best, speedup_at_target=speedup)
+        print(f"  wall at {TARGET:g}: " + ", ".join(f"{m} {w:.3g}s" if w else f"{m} n/a" for m, w in at.items()),
+              flush=True)
+        print(f"  best jaxvisco: {best}; speedups: {speedup}", flush=True)
+        write_json(f"{a.out}.json", data)
+    plot(data, RESULTS / f"{a.out}.png")
+
+
+if __name__ == "__main__":
+    main()
