@@ -1,0 +1,166 @@
+"""Scaling with problem size: the 3D L-shape (hex8 and tet4) by refinement.
+
+    python benchmarks/scaling.py [--quick] [--max-refinement R] [--timeout S]
+
+Each (element, refinement) runs in its own subprocess, so that its peak resident memory
+(the RSS high-water mark, `ru_maxrss`, which includes XLA's buffers and compiled code) is
+its own. Per case: eG(1) with h = 0.1 for a few steps; ms per step (after compilation),
+Newton and Krylov iterations per step, compile time (first call minus a timed call), peak
+RSS. Refinements grow until a case exceeds the per-case wall-clock limit or the DOF cap;
+the log–log slope of ms/step against DOFs is fitted over the cases that ran. Writes
+benchmarks/results/scaling.json and scaling.png.
+"""
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+
+from common import RESULTS, jv, lshape, machine, write_json  # noqa: I001
+
+import numpy as np  # noqa: E402
+
+
+def worker(element, refinement, steps, h):
+    import resource
+
+    t0 = time.perf_counter()
+    scene = lshape(3, refinement, element=element, mass="consistent")
+    build_s = time.perf_counter() - t0
+    dofs = int(scene.mesh.n_nodes * 3)
+
+    def go():
+        return jv.simulate(scene, jv.eG(1), t_end=steps * h, dt=h, save_every=steps)
+
+    t0 = time.perf_counter()
+    sol = go()
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sol = go()
+    wall = time.perf_counter() - t0
+    its, kits = np.asarray(sol.newton_iterations), np.asarray(sol.krylov_iterations)
+    out = dict(element=element, refinement=refinement, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
+               n_gamma=int(scene.gamma0.size // 9 * 6), steps=steps, h=h, status=sol.status,
+               ms_per_step=1e3 * wall / steps, compile_s=first - wall, first_call_s=first, build_s=build_s,
+               newton_per_step=float(its.mean()), krylov_per_step=float(kits.mean()),
+               peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    print("RESULT " + json.dumps(out), flush=True)
+
+
+def run_case(element, refinement, steps, h, timeout):
+    cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h)]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        return dict(element=element, refinement=refinement, status=f"stopped at the {timeout:.0f} s limit",
+                    wall_s=time.perf_counter() - t0)
+    for line in out.splitlines():
+        if line.startswith("RESULT "):
+            r = json.loads(line[7:])
+            r["wall_s"] = time.perf_counter() - t0
+            return r
+    return dict(element=element, refinement=refinement, status="error", wall_s=time.perf_counter() - t0,
+                output_tail=out[-2000:])
+
+
+def slope(rows, key="ms_per_step"):
+    pts = [(r["dofs"], r[key]) for r in rows if key in r and r.get(key) and r["dofs"] >= 1000]
+    if len(pts) < 2:
+        pts = [(r["dofs"], r[key]) for r in rows if key in r and r.get(key)]
+    if len(pts) < 2:
+        return None
+    x, y = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
+    for el in dict.fromkeys(r["element"] for r in rows):
+        rs = [r for r in rows if r["element"] == el and "dofs" in r]
+        if not rs:
+            continue
+        d = [r["dofs"] for r in rs]
+        axes[0].loglog(d, [r["ms_per_step"] for r in rs], "o-", label=el)
+        axes[1].loglog(d, [r["compile_s"] for r in rs], "o-", label=el)
+        axes[2].loglog(d, [r["peak_rss_mb"] for r in rs], "o-", label=el)
+    for ax, t in zip(axes, ("ms per step (eG(1), h = 0.1)", "compile time [s]", "peak RSS [MB]")):
+        ax.set_xlabel("DOFs (positions)")
+        ax.set_title(t, fontsize=9)
+        ax.grid(True, which="both", lw=0.3)
+        ax.legend()
+    if rows:
+        d = np.array(sorted({r["dofs"] for r in rows if "dofs" in r}), dtype=float)
+        if d.size:
+            ms0 = min(r["ms_per_step"] for r in rows if "dofs" in r and r["dofs"] == d[0])
+            axes[0].loglog(d, ms0 * (d / d[0]) ** 1.2, "k:", lw=0.8, label="DOFs^1.2")
+            axes[0].legend()
+    fig.suptitle("3D L-shape scaling, shared 2-core CPU (other jobs running)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}", flush=True)
+
+
+def main(argv=None):
+    if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--worker":
+        _, _, element, r, steps, h = sys.argv
+        worker(element, int(r), int(steps), float(h))
+        return
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="hex8 refinement 1 and 2 only")
+    p.add_argument("--max-refinement", type=int, default=None)
+    p.add_argument("--elements", default="hex8,tet4")
+    p.add_argument("--timeout", type=float, default=None, help="wall-clock limit of one case [s]")
+    p.add_argument("--max-dofs", type=int, default=120_000)
+    p.add_argument("--steps", type=int, default=None)
+    p.add_argument("--out", default="scaling")
+    a = p.parse_args(argv)
+    max_r = a.max_refinement or (2 if a.quick else 8)
+    timeout = a.timeout or (150.0 if a.quick else 900.0)
+    steps = a.steps or (3 if a.quick else 5)
+    elements = ["hex8"] if a.quick else a.elements.split(",")
+    rows = []
+    data = dict(machine=machine(), settings=dict(
+        integrator="eG(1)", h=0.1, steps=steps, solver="NewtonKrylov() defaults", mass="consistent",
+        per_case_timeout_s=timeout, max_dofs=a.max_dofs, quick=a.quick,
+        peak_memory="ru_maxrss of the subprocess that ran the case (RSS high-water mark)"), rows=rows)
+    for el in elements:
+        for r in range(1, max_r + 1):
+            dofs = lshape_dofs(el, r)
+            if dofs > a.max_dofs:
+                print(f"{el} r{r}: {dofs} DOFs > cap {a.max_dofs}, stop", flush=True)
+                break
+            res = run_case(el, r, steps, 0.1, timeout)
+            res.setdefault("dofs", dofs)
+            rows.append(res)
+            print(json.dumps(res), flush=True)
+            write_json(f"{a.out}.json", data)
+            if "ms_per_step" not in res:
+                print(f"{el} r{r}: {res['status']}; larger refinements skipped", flush=True)
+                break
+    for el in elements:
+        rs = [r for r in rows if r["element"] == el and "ms_per_step" in r]
+        data.setdefault("slope_ms_per_step_vs_dofs", {})[el] = slope(rs)
+        data.setdefault("slope_compile_vs_dofs", {})[el] = slope(rs, "compile_s")
+        data.setdefault("dof_range", {})[el] = [min((r["dofs"] for r in rs), default=None),
+                                                max((r["dofs"] for r in rs), default=None)]
+    write_json(f"{a.out}.json", data)
+    plot([r for r in rows if "ms_per_step" in r], RESULTS / f"{a.out}.png")
+
+
+def lshape_dofs(element, r):
+    return int(jv.lshape_mesh(dim=3, refinement=r, element=element).n_nodes * 3)
+
+
+if __name__ == "__main__":
+    main()
