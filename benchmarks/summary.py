@@ -1,0 +1,93 @@
+"""Collect the benchmark results into benchmarks/results/summary.json (no new measurements).
+
+    python benchmarks/summary.py
+
+Reads work_precision.json, stability.json, scaling.json and skip_cost.json (whichever
+exist) and writes the headline numbers and the issue's targets, met or not.
+"""
+
+import json
+import math
+
+from common import RESULTS, machine, write_json  # noqa: I001
+
+
+def _load(name):
+    path = RESULTS / f"{name}.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def main():
+    wp, st, sc, sk = (_load(n) for n in ("work_precision", "stability", "scaling", "skip_cost"))
+    out = dict(machine=machine(), sources={}, targets={})
+    del out["machine"]["load_average_at_start"]
+    if wp:
+        out["sources"]["work_precision"] = dict(quick=wp["settings"]["quick"], date=wp["machine"]["date"],
+                                                t_end=wp["settings"]["t_end"])
+        sp, best, walls, refcheck = {}, {}, {}, {}
+        for key, d in wp["scenes"].items():
+            best[key] = d["best_jaxvisco"]
+            walls[key] = d["wall_at_target_s"]
+            refcheck[key] = dict(scheme=d["reference"]["scheme"], h=d["reference"]["h"],
+                                 radau_rtol=d["reference"]["radau_rtol"], diff_x=d["reference"]["diff_x"],
+                                 diff_H=d["reference"]["diff_H"])
+            for peer, s in d["speedup_at_target"].items():
+                sp.setdefault(peer, {})[key] = s
+        out["speedup_at_1e-6"] = sp
+        out["speedup_note"] = ("peer wall time / best jaxvisco scheme's wall time at error 1e-6 (log-log "
+                               "interpolation along each method's runs; None where a curve does not reach 1e-6)")
+        out["best_jaxvisco_at_1e-6"] = best
+        out["wall_at_1e-6_s"] = walls
+        out["reference_check"] = refcheck
+        r1 = next(iter(wp["scenes"].values()))
+        out["targets"]["eG >= 5x faster than scipy Radau at 1e-6"] = _met(sp.get("scipy Radau"), 5.0)
+        out["targets"]["eG >= 3x faster than diffrax Kvaerno5 at 1e-6"] = _met(sp.get("diffrax Kvaerno5"), 3.0)
+        out["compile_s"] = {"work_precision (2D L-shape, first simulate call minus a timed call)": {
+            m: next(r["compile_s"] for r in r1["runs"] if r["method"] == m and "compile_s" in r)
+            for m in dict.fromkeys(r["method"] for r in r1["runs"]) if any(
+                r["method"] == m and "compile_s" in r for r in r1["runs"])}}
+    if st:
+        out["sources"]["stability"] = dict(quick=st["settings"]["quick"], date=st["machine"]["date"],
+                                           t_end=st["settings"]["t_end"])
+        out["stability"] = {s: d["largest_stable_nonincreasing_h_all_variants"]
+                            for s, d in st.get("largest_stable_h", {}).items()}
+        out["stability_per_variant"] = {s: d["per_variant"] for s, d in st.get("largest_stable_h", {}).items()}
+        eg = {s: d for s, d in st.get("largest_stable_h", {}).items() if s.startswith("eG")}
+        out["targets"]["eG stable with non-increasing energy at every tested h"] = dict(
+            met=bool(eg) and all(all(d["stable_nonincreasing_at_every_h"].values()) for d in eg.values()),
+            detail={s: d["stable_nonincreasing_at_every_h"] for s, d in eg.items()})
+    if sc:
+        out["sources"]["scaling"] = dict(quick=sc["settings"]["quick"], date=sc["machine"]["date"])
+        out["scaling_slope"] = sc.get("slope_ms_per_step_vs_dofs")
+        out["scaling_dof_range"] = sc.get("dof_range")
+        slopes = [s for s in (sc.get("slope_ms_per_step_vs_dofs") or {}).values() if s is not None]
+        top = max((r.get("dofs", 0) for r in sc["rows"] if "ms_per_step" in r), default=0)
+        out["targets"]["time per step <= DOFs^1.2 up to 1e5 DOFs"] = dict(
+            met=bool(slopes) and max(slopes) <= 1.2 and top >= 1e5, slopes=sc.get("slope_ms_per_step_vs_dofs"),
+            largest_dofs_run=top)
+        out.setdefault("compile_s", {})["scaling (3D L-shape eG(1))"] = {
+            f"{r['element']} {r['dofs']} DOFs": r["compile_s"] for r in sc["rows"] if "compile_s" in r}
+    if sk:
+        out["sources"]["skip_cost"] = dict(date=sk["machine"]["date"])
+        out["skip_cost_ms_per_step"] = {f"{r['material']}, save_every={r['save_every']}": r["ms_per_step"]
+                                        for r in sk["rows"]}
+        out["skip_cost_ratios"] = sk.get("ratios")
+    cs = [v for d in out.get("compile_s", {}).values() for v in d.values() if v is not None]
+    l2d = out.get("compile_s", {}).get("work_precision (2D L-shape, first simulate call minus a timed call)", {})
+    l2d = [v for m, v in l2d.items() if not m.startswith(("scipy", "diffrax"))]
+    out["targets"]["compile time of the L-shape run < 10 s"] = dict(
+        met=bool(l2d) and max(l2d) < 10.0, range_s=[min(l2d), max(l2d)] if l2d else None,
+        note="compile times measured on a shared, heavily loaded 2-core CPU" if cs else None)
+    write_json("summary.json", out)
+
+
+def _met(per_scene, factor):
+    if not per_scene:
+        return dict(met=False, values=None)
+    vals = {k: v for k, v in per_scene.items()}
+    ok = [v for v in vals.values() if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return dict(met=bool(ok) and all(v >= factor for v in ok), values=vals, required=factor)
+
+
+if __name__ == "__main__":
+    main()
