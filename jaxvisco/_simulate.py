@@ -13,10 +13,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._differentiable import layout, run_scan
 from ._newton import NewtonKrylov, solve_step
 from ._scene import Scene, State
 from ._schedule import step_sizes
-from ._step import end_state, end_velocity, external_work, make_context, predictor, step_dissipation
+from ._step import (
+    end_state,
+    end_velocity,
+    external_work,
+    make_context,
+    predictor,
+    step_dissipation,
+)
 from ._tangent import empty_tangent
 from ._tensor import small_solve
 from ._time_element import AbstractTimeElement
@@ -119,7 +127,7 @@ def relative_kinetic_energy(scene: Scene, x, p):
 def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, save_every=1,
              solver: NewtonKrylov = NewtonKrylov(), save_gamma=False, stop_at_equilibrium=None,
              max_halvings=6, initial_state: Optional[State] = None, max_steps=None,
-             throw=True, initial_velocity=None) -> Solution:
+             throw=True, initial_velocity=None, differentiable=False, checkpoint_every=None) -> Solution:
     """Integrate a scene in time.
 
     **Arguments:**
@@ -142,6 +150,15 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
     - `max_steps`: capacity of the compiled loop (default: the number of steps). Runs
       with different step counts but the same `max_steps` share one compilation.
     - `throw`: raise `SolverError` on failure (else return with `status == "failed"`).
+    - `differentiable`: run the loop that JAX can differentiate (`jax.grad`, `jax.jvp`,
+      `jax.vmap`) with respect to anything the scene holds (material parameters,
+      density, initial velocities and positions, loads) and `initial_state`: the
+      schedule's steps exactly (no halving, no early stop; a failed step ends the run
+      with `status == "failed"`), each step differentiated implicitly (one linear solve
+      with the converged tangent; Newton is never differentiated). See `_differentiable`.
+    - `checkpoint_every`: frames per checkpointed segment of the differentiable loop
+      (default ceil(sqrt(frames)): reverse-mode memory grows like the square root of
+      the number of steps).
 
     **Returns:** a `Solution` (trimmed to the saved frames when called outside `jit`).
     """
@@ -176,10 +193,23 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
         if v0.shape != state0.p.shape:
             raise ValueError(f"initial_velocity must have shape {state0.p.shape}, got {v0.shape}.")
         check_finite("initial_velocity", v0)
+    if differentiable:
+        if stop_at_equilibrium is not None:
+            raise ValueError("stop_at_equilibrium is not available with differentiable=True "
+                             "(the differentiable loop runs the schedule's steps exactly).")
+        m, n_seg = layout(n_active, int(save_every), checkpoint_every)
+        hs_pad = np.concatenate([hs[:n_active], np.ones(n_seg * m * int(save_every) - n_active)])
+        sol = run_scan(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs_pad),
+                       jnp.asarray(n_active), int(save_every), bool(save_gamma), m, n_seg, v0, use_v0)
+        return _finish(sol, integrator, 0, throw)
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs),
                jnp.asarray(n_active), int(save_every), bool(save_gamma),
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
                int(max_halvings), v0, use_v0)
+    return _finish(sol, integrator, int(max_halvings), throw)
+
+
+def _finish(sol, integrator, max_halvings, throw):
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()

@@ -17,12 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 
 
 class HostLU:
     """Factorizations of matrices with one fixed sparsity pattern (COO rows/cols)."""
 
-    def __init__(self, rows, cols, n, cache_size=64):
+    def __init__(self, rows, cols, n, cache_size=256, max_bytes=4 * 2**30):
         rows = np.asarray(rows, dtype=np.int64).ravel()
         cols = np.asarray(cols, dtype=np.int64).ravel()
         key = cols * n + rows
@@ -33,6 +35,8 @@ class HostLU:
         self.nnz = len(uniq)
         self._cache = collections.OrderedDict()
         self._cache_size = cache_size
+        self._max_bytes = max_bytes
+        self._bytes = collections.OrderedDict()
         self._ids = itertools.count()
 
     def matrix(self, data):
@@ -46,14 +50,24 @@ class HostLU:
             return np.int64(-1)
         token = next(self._ids)
         self._cache[token] = lu
-        while len(self._cache) > self._cache_size:
-            self._cache.popitem(last=False)
+        self._bytes[token] = 12 * (lu.L.nnz + lu.U.nnz)
+        while len(self._cache) > 1 and (len(self._cache) > self._cache_size
+                                        or sum(self._bytes.values()) > self._max_bytes):
+            old, _ = self._cache.popitem(last=False)
+            self._bytes.pop(old)
         return np.int64(token)
 
     def solve(self, token, b, trans=False):
-        lu = self._cache.get(int(token))
-        if lu is None:
+        token = int(token)
+        if token < 0:  # singular: the caller sees NaN and rejects the step
             return np.full(b.shape, np.nan)
+        lu = self._cache.get(token)
+        if lu is None:
+            raise RuntimeError(
+                f"jaxvisco: factorization {token} is no longer cached (the cache keeps the "
+                f"{self._cache_size} most recent ones, at most {self._max_bytes / 2**30:.1f} GiB). "
+                "Differentiating a long run? Lower `checkpoint_every` so fewer factorizations "
+                "must stay alive at once.")
         return lu.solve(np.asarray(b, dtype=np.float64), trans="T" if trans else "N")
 
 
@@ -64,18 +78,54 @@ def lu_factor(host: HostLU, data):
 
 
 def lu_solve(host: HostLU, token, b, trans=False):
-    """Solve with a factorization (linear in `b`, so it may sit inside a linearized
-    preconditioner)."""
+    """Solve with a factorization: $A^{-1} b$ (or $A^{-T} b$ with `trans`).
 
-    @jax.custom_jvp
-    def solve(b):
-        return jax.pure_callback(
-            functools.partial(host.solve, trans=trans), jax.ShapeDtypeStruct(b.shape, b.dtype),
-            token, b, vmap_method="sequential",
-        )
+    A JAX primitive that is linear in `b`, with JVP, transpose (a solve with the
+    transposed factors) and batching rules, so that a function built on it (the block
+    solve of `_tangent`) can be linearized, transposed and vmapped: the implicit
+    derivatives of a time step reuse the factorization in both directions.
+    """
+    return _lu_solve_p.bind(jnp.asarray(token, jnp.int64), b, host=host, trans=bool(trans))
 
-    @solve.defjvp
-    def _jvp(primals, tangents):
-        return solve(primals[0]), solve(tangents[0])
 
-    return solve(b)
+def _lu_solve_impl(token, b, *, host, trans):
+    return jax.pure_callback(
+        functools.partial(host.solve, trans=trans), jax.ShapeDtypeStruct(b.shape, b.dtype),
+        token, b, vmap_method="sequential",
+    )
+
+
+def _lu_solve_jvp(primals, tangents, *, host, trans):
+    token, b = primals
+    out = _lu_solve_p.bind(token, b, host=host, trans=trans)
+    db = tangents[1]
+    if type(db) is ad.Zero:
+        return out, ad.Zero.from_primal_value(out)
+    return out, _lu_solve_p.bind(token, db, host=host, trans=trans)
+
+
+def _lu_solve_transpose(ct, token, b, *, host, trans):
+    if ad.is_undefined_primal(token):
+        raise ValueError("lu_solve is not linear in the factorization token.")
+    if type(ct) is ad.Zero:
+        return None, ad.Zero(b.aval)
+    return None, _lu_solve_p.bind(token, ct, host=host, trans=not trans)
+
+
+def _lu_solve_batch(args, dims, *, host, trans):
+    token, b = args
+    td, bd = dims
+    size = token.shape[td] if td is not None else b.shape[bd]
+    token = jnp.broadcast_to(token, (size,)) if td is None else jnp.moveaxis(token, td, 0)
+    b = jnp.broadcast_to(b, (size,) + b.shape) if bd is None else jnp.moveaxis(b, bd, 0)
+    out = jax.lax.map(lambda tb: _lu_solve_p.bind(tb[0], tb[1], host=host, trans=trans), (token, b))
+    return out, 0
+
+
+_lu_solve_p = Primitive("jaxvisco_lu_solve")
+_lu_solve_p.def_impl(_lu_solve_impl)
+_lu_solve_p.def_abstract_eval(lambda token, b, **_: jax.core.ShapedArray(b.shape, b.dtype))
+mlir.register_lowering(_lu_solve_p, mlir.lower_fun(_lu_solve_impl, multiple_results=False))
+ad.primitive_jvps[_lu_solve_p] = _lu_solve_jvp
+ad.primitive_transposes[_lu_solve_p] = _lu_solve_transpose
+batching.primitive_batchers[_lu_solve_p] = _lu_solve_batch
