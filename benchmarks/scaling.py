@@ -124,6 +124,10 @@ def main(argv=None):
     p.add_argument("--max-dofs", type=int, default=120_000)
     p.add_argument("--steps", type=int, default=None)
     p.add_argument("--out", default="scaling")
+    p.add_argument("--append", action="store_true", help="keep the rows of other elements already in the file")
+    p.add_argument("--memory-fraction", type=float, default=0.5,
+                   help="skip a case whose peak RSS, extrapolated from the smaller ones, exceeds this fraction "
+                        "of the available memory (the machine is shared)")
     a = p.parse_args(argv)
     max_r = a.max_refinement or (2 if a.quick else 8)
     timeout = a.timeout or (150.0 if a.quick else 900.0)
@@ -134,11 +138,23 @@ def main(argv=None):
         integrator="eG(1)", h=0.1, steps=steps, solver="NewtonKrylov() defaults", mass="consistent",
         per_case_timeout_s=timeout, max_dofs=a.max_dofs, quick=a.quick,
         peak_memory="ru_maxrss of the subprocess that ran the case (RSS high-water mark)"), rows=rows)
+    if a.append and (RESULTS / f"{a.out}.json").exists():
+        old = json.loads((RESULTS / f"{a.out}.json").read_text())
+        rows += [r for r in old["rows"] if r["element"] not in elements]
+        data["settings"]["earlier_rows_from"] = old["machine"]["date"]
     for el in elements:
         for r in range(1, max_r + 1):
             dofs = lshape_dofs(el, r)
             if dofs > a.max_dofs:
                 print(f"{el} r{r}: {dofs} DOFs > cap {a.max_dofs}, stop", flush=True)
+                break
+            est = _rss_estimate([x for x in rows if x["element"] == el and "peak_rss_mb" in x], dofs)
+            avail = _available_mb()
+            if est is not None and avail is not None and est > a.memory_fraction * avail:
+                msg = (f"skipped: peak RSS extrapolated to {est:.0f} MB > {a.memory_fraction:g} x the "
+                       f"{avail:.0f} MB available on this shared machine")
+                rows.append(dict(element=el, refinement=r, dofs=dofs, status=msg))
+                print(f"{el} r{r}: {msg}", flush=True)
                 break
             res = run_case(el, r, steps, 0.1, timeout)
             res.setdefault("dofs", dofs)
@@ -156,6 +172,25 @@ def main(argv=None):
                                                 max((r["dofs"] for r in rs), default=None)]
     write_json(f"{a.out}.json", data)
     plot([r for r in rows if "ms_per_step" in r], RESULTS / f"{a.out}.png")
+
+
+def _rss_estimate(rows, dofs):
+    """Linear extrapolation of peak RSS in DOFs from the two largest cases run."""
+    rs = sorted(rows, key=lambda r: r["dofs"])[-2:]
+    if len(rs) < 2:
+        return None
+    (d0, m0), (d1, m1) = ((r["dofs"], r["peak_rss_mb"]) for r in rs)
+    return m1 + (m1 - m0) / (d1 - d0) * (dofs - d1)
+
+
+def _available_mb():
+    try:
+        for line in open("/proc/meminfo"):
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
 
 
 def lshape_dofs(element, r):

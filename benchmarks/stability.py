@@ -125,7 +125,17 @@ def main(argv=None):
     p.add_argument("--t-end", type=float, default=None)
     p.add_argument("--schemes", default=None)
     p.add_argument("--out", default="stability")
+    p.add_argument("--from-json", action="store_true",
+                   help="rebuild the table, summary and plot from an existing (possibly partial) results file")
     a = p.parse_args(argv)
+    if a.from_json:
+        import json
+
+        data = json.loads((RESULTS / f"{a.out}.json").read_text())
+        finish(data, data["rows"], list(dict.fromkeys(r["variant"] for r in data["rows"])),
+               list(dict.fromkeys(r["scheme"] for r in data["rows"])), data["settings"]["hs"],
+               data["settings"]["t_end"], a.out)
+        return
     T = a.t_end if a.t_end is not None else (20.0 if a.quick else 100.0)
     hs = [0.25, 1.0, 4.0] if a.quick else [0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 4.0]
     vs = variants()
@@ -151,16 +161,27 @@ def main(argv=None):
                       f"H={r['H_final']:.6g} max dH/H0={r['max_step_increase_rel']:.2e} "
                       f"fails={r['newton_failures']} {r['wall_s']:.1f}s", flush=True)
             write_json(f"{a.out}.json", data)
+    finish(data, rows, list(vs), list(sc), hs, T, a.out)
+
+
+def finish(data, rows, vs, sc, hs, T, out):
+    done = {(r["scheme"], r["variant"]) for r in rows}
+    complete = all((s, v) in done for s in sc for v in vs)
+    if not complete:
+        data["incomplete"] = "not every scheme x variant ran: " + ", ".join(
+            f"{s}/{v}" for s in sc for v in vs if (s, v) not in done) + " missing"
     largest = {}
     for s_name in sc:
         ok = [r["h"] for r in rows if r["scheme"] == s_name and r["energy_nonincreasing"]]
+        ran = [v for v in vs if (s_name, v) in done]
         all_ok = {v: sorted(r["h"] for r in rows if r["scheme"] == s_name and r["variant"] == v
-                            and r["energy_nonincreasing"]) for v in vs}
+                            and r["energy_nonincreasing"]) for v in ran}
         largest[s_name] = dict(
             largest_stable_nonincreasing_h_all_variants=max(
-                (h for h in hs if all(h in all_ok[v] for v in vs)), default=None),
-            per_variant={v: (max(all_ok[v]) if all_ok[v] else None) for v in vs},
-            stable_nonincreasing_at_every_h={v: len(all_ok[v]) == len(hs) for v in vs}, any=bool(ok))
+                (h for h in hs if ran and all(h in all_ok[v] for v in ran)), default=None),
+            variants_run=ran,
+            per_variant={v: (max(all_ok[v]) if all_ok[v] else None) for v in ran},
+            stable_nonincreasing_at_every_h={v: len(all_ok[v]) == len(hs) for v in ran}, any=bool(ok))
     data["largest_stable_h"] = largest
     md = ["# Stability on the 2D L-shape", "",
           f"t in [0, {T:g}], consistent mass, refinement 1; {data['machine']['date']}; "
@@ -168,9 +189,11 @@ def main(argv=None):
           table(rows, list(vs), list(sc), hs), "## Largest h stable with non-increasing energy (all variants)", ""]
     for s_name, d in largest.items():
         md.append(f"- {s_name}: {d['largest_stable_nonincreasing_h_all_variants']} (per variant: {d['per_variant']})")
-    (RESULTS / f"{a.out}.md").write_text("\n".join(md) + "\n")
-    write_json(f"{a.out}.json", data)
-    plot(rows, list(vs), list(sc), RESULTS / f"{a.out}.png")
+    if not complete:
+        md += ["", f"**Incomplete:** {data['incomplete']}."]
+    (RESULTS / f"{out}.md").write_text("\n".join(md) + "\n")
+    write_json(f"{out}.json", data)
+    plot(rows, vs, sc, RESULTS / f"{out}.png")
 
 
 if __name__ == "__main__":
