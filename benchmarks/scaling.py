@@ -164,7 +164,7 @@ def main(argv=None):
             if "ms_per_step" not in res:
                 print(f"{el} r{r}: {res['status']}; larger refinements skipped", flush=True)
                 break
-    for el in elements:
+    for el in dict.fromkeys(r["element"] for r in rows):
         rs = [r for r in rows if r["element"] == el and "ms_per_step" in r]
         data.setdefault("slope_ms_per_step_vs_dofs", {})[el] = slope(rs)
         data.setdefault("slope_compile_vs_dofs", {})[el] = slope(rs, "compile_s")
