@@ -1,0 +1,57 @@
+"""Where a jaxvisco step spends its time: host sparse LU (factor, solve) vs the rest.
+
+    python benchmarks/profile_step.py [--quick]
+
+eG(1) and eG(2) on the 2D L-shape (refinement 1, lumped mass as in work_precision.py),
+h = 0.05, after compilation, under cProfile: the sparse factorizations and solves run on
+the host through `jax.pure_callback` (`HostLU.factor`, `HostLU.solve`), so their share of
+the wall time is visible to a Python profiler; the rest is the compiled XLA program
+(residuals, JVPs, GMRES, tangent assembly) and callback overhead. Writes
+benchmarks/results/profile_step.json.
+"""
+
+import argparse
+import cProfile
+import pstats
+import time
+
+from common import jv, lshape, machine, write_json  # noqa: I001
+
+import numpy as np  # noqa: E402
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    a = p.parse_args(argv)
+    n, h = (40 if a.quick else 200), 0.05
+    scene = lshape(2, 1, mass="lumped")
+    rows = []
+    data = dict(machine=machine(), settings=dict(scene="2D L-shape r1, lumped mass", h=h, steps=n), rows=rows)
+    for name, scheme in (("eG(1)", jv.eG(1)), ("eG(2)", jv.eG(2))):
+        def go():
+            return jv.simulate(scene, scheme, t_end=n * h, dt=h, save_every=n)
+
+        go()  # compile
+        prof = cProfile.Profile()
+        t0 = time.perf_counter()
+        prof.enable()
+        sol = go()
+        prof.disable()
+        wall = time.perf_counter() - t0
+        st = pstats.Stats(prof)
+        host = {}
+        for (fname, _, func), (cc, nc, tt, ct, callers) in st.stats.items():
+            if fname.endswith("_sparse.py") and func in ("factor", "solve"):
+                host[func] = dict(calls=nc, seconds=ct)
+        host_s = sum(v["seconds"] for v in host.values())
+        row = dict(scheme=name, wall_s=wall, ms_per_step=1e3 * wall / n, host_lu=host, host_lu_fraction=host_s / wall,
+                   newton_per_step=float(np.mean(np.asarray(sol.newton_iterations))),
+                   krylov_per_step=float(np.mean(np.asarray(sol.krylov_iterations))))
+        rows.append(row)
+        print(row, flush=True)
+        write_json("profile_step.json", data)
+
+
+if __name__ == "__main__":
+    main()
