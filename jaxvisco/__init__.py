@@ -5,22 +5,45 @@ jaxvisco computes in float64 and never switches precision behind your back: call
 """
 
 from . import scenes as scenes
+from ._batch import sharded_map as sharded_map
 from ._config import require_x64 as require_x64
 from ._drive import drive as drive
-from ._elements import ElementType as ElementType, element_type as element_type
-from ._generators import box as box, lshape_mesh as lshape_mesh, rectangle as rectangle
-from ._materials import NeoHooke as NeoHooke, ReeseGovindjee as ReeseGovindjee, paper_material as paper_material
+from ._elements import ElementType as ElementType
+from ._elements import element_type as element_type
+from ._generators import box as box
+from ._generators import lshape_mesh as lshape_mesh
+from ._generators import rectangle as rectangle
+from ._identify import Identification as Identification
+from ._identify import identify as identify
+from ._identify import with_parameters as with_parameters
+from ._materials import NeoHooke as NeoHooke
+from ._materials import ReeseGovindjee as ReeseGovindjee
+from ._materials import paper_material as paper_material
 from ._mesh import Mesh as Mesh
 from ._newton import NewtonKrylov as NewtonKrylov
-from ._ode import SemiDiscrete as SemiDiscrete, semidiscrete as semidiscrete
-from ._results import read_restart as read_restart, read_results as read_results, resume as resume
-from ._scene import Scene as Scene, State as State
-from ._simulate import Solution as Solution, SolverError as SolverError, simulate as simulate
+from ._ode import SemiDiscrete as SemiDiscrete
+from ._ode import semidiscrete as semidiscrete
+from ._results import read_restart as read_restart
+from ._results import read_results as read_results
+from ._results import resume as resume
+from ._scene import Scene as Scene
+from ._scene import State as State
+from ._simulate import Solution as Solution
+from ._simulate import SolverError as SolverError
+from ._simulate import simulate as simulate
 from ._time_element import (
     AbstractTimeElement as AbstractTimeElement,
+)
+from ._time_element import (
     Midpoint as Midpoint,
+)
+from ._time_element import (
     Newmark as Newmark,
+)
+from ._time_element import (
     cG as cG,
+)
+from ._time_element import (
     eG as eG,
 )
 
