@@ -12,12 +12,14 @@ the exact Newton step with it (no Krylov): the robust choice for stiff regimes.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 
 from ._krylov import gmres
 from ._step import residual
 from ._tangent import Tangent, form_tangent, schur_solve
 
 _LINEAR_SOLVERS = ("krylov", "direct")
+_KRYLOV = ("gmres", "lineax")
 
 
 class NewtonKrylov(eqx.Module):
@@ -31,6 +33,10 @@ class NewtonKrylov(eqx.Module):
     - `max_iterations`: Newton iterations before the step counts as failed (20).
     - `linear_solver`: `"krylov"` (GMRES with the condensed-tangent preconditioner,
       default) or `"direct"` (exact Newton steps with a fresh sparse factorization).
+    - `krylov`: `"gmres"` (default: jaxvisco's right-preconditioned GMRES, which checks
+      the residual after every Arnoldi step) or `"lineax"` (lineax's `GMRES`, restarted
+      every 5 vectors; it checks convergence once per restart cycle and needs two
+      cycles, so it costs more Krylov vectors: see `_krylov`).
     - `krylov_max_steps`: GMRES iterations per Newton iteration (60).
     - `refresh_after`: re-form the tangent once GMRES needed more iterations than this (8).
     - `line_search`: backtracking halvings allowed per iteration (8; 0 disables it).
@@ -41,6 +47,7 @@ class NewtonKrylov(eqx.Module):
     rtol: float = eqx.field(static=True, default=1e-10)
     max_iterations: int = eqx.field(static=True, default=20)
     linear_solver: str = eqx.field(static=True, default="krylov")
+    krylov: str = eqx.field(static=True, default="gmres")
     krylov_max_steps: int = eqx.field(static=True, default=60)
     refresh_after: int = eqx.field(static=True, default=8)
     line_search: int = eqx.field(static=True, default=8)
@@ -49,6 +56,8 @@ class NewtonKrylov(eqx.Module):
     def __check_init__(self):
         if self.linear_solver not in _LINEAR_SOLVERS:
             raise ValueError(f"linear_solver must be one of {_LINEAR_SOLVERS}, got {self.linear_solver!r}.")
+        if self.krylov not in _KRYLOV:
+            raise ValueError(f"krylov must be one of {_KRYLOV}, got {self.krylov!r}.")
         if not (0.0 < self.rtol < 1.0):
             raise ValueError(f"rtol must lie in (0, 1), got {self.rtol!r}.")
         if self.max_iterations < 1:
@@ -91,6 +100,19 @@ def _axpy(a, dU, U):
     return jax.tree_util.tree_map(lambda d, u: u + a * d, dU, U)
 
 
+def _lineax_gmres(matvec, precond, rhs, eta, max_steps):
+    """lineax's GMRES with the same operator, preconditioner and forcing term. Its test
+    is component-wise (|r_i| <= atol + rtol |b_i|); atol = eta max|b| makes it a
+    max-norm test relative to the right-hand side, like ours."""
+    structure = jax.eval_shape(lambda: rhs)
+    op = lx.FunctionLinearOperator(matvec, structure)
+    pc = lx.FunctionLinearOperator(precond, structure)
+    bmax = jnp.max(jnp.stack([jnp.max(jnp.abs(b)) for b in jax.tree_util.tree_leaves(rhs)]))
+    sol = lx.linear_solve(op, rhs, lx.GMRES(rtol=eta, atol=eta * bmax, restart=5, max_steps=max_steps),
+                          options={"preconditioner": pc}, throw=False)
+    return sol.value, sol.stats["num_steps"]
+
+
 def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -> NewtonResult:
     res = lambda U: residual(scheme, scene, ctx, U)  # noqa: E731
     R0 = res(U0)
@@ -122,7 +144,10 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             _, jvp = jax.linearize(lambda u: scaled(res(u)), U)
             # Eisenstat–Walker (choice 2) forcing, kept in [1e-12, 1e-2].
             eta = jnp.clip(0.9 * (norm / jnp.minimum(prev, 1.0)) ** 2, 1e-12, 1e-2)
-            dU_s, n_lin, _ = gmres(jvp, precond, rhs, eta, solver.krylov_max_steps)
+            if solver.krylov == "lineax":
+                dU_s, n_lin = _lineax_gmres(jvp, precond, rhs, eta, solver.krylov_max_steps)
+            else:
+                dU_s, n_lin, _ = gmres(jvp, precond, rhs, eta, solver.krylov_max_steps)
         dU = dU_s
         phi0 = _merit(R, sx)
 

@@ -1,0 +1,23 @@
+"""Solver options: lineax's GMRES as the Krylov method gives the same steps."""
+
+import numpy as np
+import pytest
+
+import jaxvisco as jv
+
+
+def test_lineax_gmres_backend_matches_default():
+    scene = jv.scenes.lshape(dim=2, refinement=1)
+    a = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.25)
+    b = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.25, solver=jv.NewtonKrylov(krylov="lineax"))
+    assert b.status == "done" and int(b.n_steps) == 4
+    assert np.all(b.krylov_iterations > 0)
+    np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(b.energy, a.energy, rtol=1e-10)
+    H, D = np.asarray(b.energy), np.diff(np.asarray(b.dissipated))
+    assert np.max(np.abs(np.diff(H) + D)) <= 1e-9 * H[0]
+
+
+def test_unknown_krylov_method_is_rejected():
+    with pytest.raises(ValueError, match="krylov must be one of"):
+        jv.NewtonKrylov(krylov="cg")
