@@ -38,10 +38,11 @@ Beside ``name.h5`` the writer keeps ``name.xdmf``, a temporal collection whose g
 reference the HDF5 datasets by relative path, so the pair can be moved together.
 Why per-frame datasets rather than slices of ``/nodal/x``: ParaView's Xdmf3 readers
 (``Xdmf3ReaderS``/``T``, ParaView 5.11) crash (SIGSEGV in CopyShape) on a HyperSlab
-geometry and read no points from a ``Function`` geometry, and both ParaView readers
-want 3-component geometry; plain (N, 3) datasets, one per frame, open in the legacy
-``XDMFReader`` and both Xdmf3 readers (tested in tests/test_results.py when
-``pvpython`` is installed). The XDMF file is extended in place by one ``write`` per
+geometry and read no points from a ``Function`` geometry; plain datasets, one per
+frame, open in the legacy ``XDMFReader`` and both Xdmf3 readers (tested in
+tests/test_results.py when ``pvpython`` is installed). Plain ``XY`` geometry opens too,
+but ParaView treats only 3-component point data as vectors (glyphs, warp by vector),
+so geometry, displacement and momentum are all padded to 3 components in 2D. The XDMF file is extended in place by one ``write`` per
 append (new grids plus the closing tags), so its cost does not grow with the run and
 it always references flushed frames only. Known ParaView quirk: the Xdmf3 readers
 resolve the relative HDF5 path wrongly when the XDMF file name has no directory part
