@@ -78,7 +78,7 @@ def _pieces(t_start, hs):
 
 def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=None, writer=None,
                 save_gamma=False, label="", quiet=False, stream=None, initial_state=None, initial_velocity=None,
-                should_stop=None):
+                should_stop=None, max_halvings=6):
     """Integrate over the steps `hs` in chunks of `chunk` steps, appending to `writer`.
 
     Each chunk starts from the previous chunk's last state and predictor velocity, so
@@ -111,7 +111,8 @@ def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=No
         h = hs[i0:i0 + chunk]
         dt, t_end = _pieces(t, h)
         sol = jv.simulate(scene, integrator, t_end=t_end, dt=dt, t0=t, save_every=save_every, solver=solver,
-                          save_gamma=True, initial_state=state, throw=False, initial_velocity=v, **extra)
+                          save_gamma=True, initial_state=state, throw=False, initial_velocity=v,
+                          max_halvings=max_halvings, **extra)
         first = state is None
         if writer is not None:
             writer.append(sol, skip_first=not first, gamma=save_gamma)
@@ -348,6 +349,8 @@ def _run(args):
         raise ValueError(f"--save-every must be >= 1, got {args.save_every}.")
     if args.chunk < 1:
         raise ValueError(f"--chunk must be >= 1, got {args.chunk}.")
+    if not 0 <= args.max_halvings <= 30:
+        raise ValueError(f"--max-halvings must be an integer in [0, 30], got {args.max_halvings}.")
     if args.t_end is not None and not math.isfinite(args.t_end):
         raise ValueError(f"--t-end must be a finite time > 0, got {args.t_end!r}.")
     integrator = make_integrator(args.integrator, args.order)
@@ -388,7 +391,8 @@ def _run(args):
         with _StopOnSigint(args.quiet) as stop:
             r = run_chunked(scene, integrator, hs, t0=t0, chunk=c, save_every=args.save_every, writer=w,
                             save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet,
-                            initial_state=state0, initial_velocity=v0, should_stop=stop)
+                            initial_state=state0, initial_velocity=v0, should_stop=stop,
+                            max_halvings=args.max_halvings)
         status = r["status"]
     except KeyboardInterrupt:
         status = "interrupted"
@@ -490,6 +494,9 @@ def build_parser():
         r.add_argument("--" + name, type=float, default=None, help=f"material parameter {name} (default: paper)")
     r.add_argument("--save-every", type=int, default=1, help="save every N-th step (default 1)")
     r.add_argument("--save-gamma", action="store_true", help="also store the internal variable /qp/gamma")
+    r.add_argument("--max-halvings", type=int, default=6,
+                   help="a failed step is halved at most N times (smallest step h/2**N) before the run stops "
+                   "(default 6)")
     r.add_argument("--chunk", type=int, default=50, help="steps per compiled chunk (progress granularity; default 50)")
     r.add_argument("--out", default="jaxvisco-run.h5", help="results file (default jaxvisco-run.h5); an .xdmf goes beside it")
     r.add_argument("--quiet", action="store_true", help="no progress lines")

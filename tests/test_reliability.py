@@ -179,6 +179,7 @@ def test_unreadable_and_mixed_mesh_files(tmp_path):
     (["--dt", "0.1", "--schedule", "1:0.1"], "either --dt or --schedule"),
     (["--save-every", "0"], "--save-every must be >= 1, got 0"),
     (["--chunk", "0"], "--chunk must be >= 1, got 0"),
+    (["--max-halvings", "-1"], "--max-halvings must be an integer in [0, 30], got -1"),
     (["--mesh", "missing.msh"], "mesh file 'missing.msh' does not exist"),
     (["--resume", "missing.h5"], "results file 'missing.h5' does not exist"),
 ])
