@@ -290,8 +290,8 @@ def test_cli_resume_equals_uninterrupted(full_and_split):
     assert len(root.findall(".//Grid[@GridType='Uniform']")) == 13
 
 
-def test_cli_resume_extends_finished_run(full_and_split, tmp_path):
-    """--t-end beyond a finished run continues it (the resumed part is checked above)."""
+def test_restart_group_after_resume(full_and_split):
+    """After `--resume --t-end` extended a finished run, the restart data describe its end."""
     d, _ = full_and_split
     r = read_restart(d / "split.h5")
     assert r.n_frames == 13 and r.n_steps == 12 and r.velocity is not None and r.state.gamma is not None
