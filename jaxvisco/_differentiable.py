@@ -49,8 +49,10 @@ def layout(n_steps, save_every, checkpoint_every=None):
 
 
 @eqx.filter_jit
-def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_gamma, m, n_seg, v0, use_v0):
-    """hs: (n_seg * m * save_every,) step sizes, padded; steps >= n_active are skipped."""
+def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_gamma, m, n_seg, v0, use_v0, n_keep):
+    """hs: (n_seg * m * save_every,) step sizes, padded; steps >= n_active are skipped.
+    n_keep (static): the schedule's step count; the padding is cut from the outputs so a
+    traced Solution has exactly the schedule's frames and steps."""
     from ._simulate import Solution
 
     diag0 = scene.diagnostics(state0)
@@ -110,8 +112,9 @@ def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_g
                 dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0), status=jnp.asarray(RUNNING),
                 n_done=jnp.asarray(0))
     c, (frames, steps) = jax.lax.scan(segment, init, (hs, idx))
-    frames = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), frames)
-    steps = jax.tree_util.tree_map(lambda a: a.reshape(-1), steps)
+    n_frames = -(-n_keep // save_every)
+    frames = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:n_frames], frames)
+    steps = jax.tree_util.tree_map(lambda a: a.reshape(-1)[:n_keep], steps)
     first = dict(t=t0, x=state0.x, p=state0.p, dissipated=jnp.asarray(0.0), external_work=jnp.asarray(0.0),
                  started=jnp.asarray(True), **diag0)
     if "gamma" in frames:

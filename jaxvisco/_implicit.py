@@ -5,8 +5,8 @@ depends on (scene parameters: material, density, loads; the start state; the tim
 Its derivative is $dU = -R_U^{-1} R_\\theta\\,d\\theta$, so Newton's iterations are never
 differentiated: `solve_step_implicit` is a `custom_jvp` whose rule forms the condensed
 tangent at the converged $U$ and solves the one linear system with the exact block
-solve (`schur_solve`) plus iterative refinement. Every piece of that rule is linear in the tangents and transposable (the
-sparse LU solve is a primitive with a transpose rule), so reverse mode works through
+solve (`schur_solve`) plus iterative refinement. Every piece of that rule is linear
+in the tangents and transposable (the sparse LU solve is a primitive with a transpose rule), so reverse mode works through
 JAX's transposition of the rule: one transposed solve per step with the transposed
 factors, the pattern of optimistix's implicit differentiation.
 """

@@ -25,7 +25,7 @@ from ._step import (
     predictor,
     step_dissipation,
 )
-from ._tangent import empty_tangent
+from ._tangent import empty_tangent, position_pattern
 from ._tensor import small_solve
 from ._time_element import AbstractTimeElement
 from ._validation import check_finite
@@ -198,9 +198,14 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
             raise ValueError("stop_at_equilibrium is not available with differentiable=True "
                              "(the differentiable loop runs the schedule's steps exactly).")
         m, n_seg = layout(n_active, int(save_every), checkpoint_every)
+        # A backward sweep needs the factorizations of a whole segment at once (one per
+        # step for the derivative, a few more for Newton when the segment is re-run).
+        position_pattern(scene.disc.cells, integrator.k, scene.disc.n_nodes, scene.dim, scene.fixed).reserve(
+            64 + 8 * m * int(save_every))
         hs_pad = np.concatenate([hs[:n_active], np.ones(n_seg * m * int(save_every) - n_active)])
         sol = run_scan(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs_pad),
-                       jnp.asarray(n_active), int(save_every), bool(save_gamma), m, n_seg, v0, use_v0)
+                       jnp.asarray(n_active), int(save_every), bool(save_gamma), m, n_seg, v0, use_v0,
+                       int(n_active))
         return _finish(sol, integrator, 0, throw)
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs),
                jnp.asarray(n_active), int(save_every), bool(save_gamma),

@@ -24,7 +24,7 @@ from jax.interpreters import ad, batching, mlir
 class HostLU:
     """Factorizations of matrices with one fixed sparsity pattern (COO rows/cols)."""
 
-    def __init__(self, rows, cols, n, cache_size=256, max_bytes=4 * 2**30):
+    def __init__(self, rows, cols, n, cache_size=64, max_bytes=2 * 2**30):
         rows = np.asarray(rows, dtype=np.int64).ravel()
         cols = np.asarray(cols, dtype=np.int64).ravel()
         key = cols * n + rows
@@ -38,6 +38,11 @@ class HostLU:
         self._max_bytes = max_bytes
         self._bytes = collections.OrderedDict()
         self._ids = itertools.count()
+
+    def reserve(self, n):
+        """Keep at least `n` factorizations alive (reverse-mode sweeps need every step of
+        a segment's); memory stays capped by `max_bytes`."""
+        self._cache_size = max(self._cache_size, int(n))
 
     def matrix(self, data):
         vals = np.bincount(self._inverse, weights=np.asarray(data, dtype=np.float64).ravel(), minlength=self.nnz)
@@ -62,6 +67,9 @@ class HostLU:
         if token < 0:  # singular: the caller sees NaN and rejects the step
             return np.full(b.shape, np.nan)
         lu = self._cache.get(token)
+        if lu is not None:
+            self._cache.move_to_end(token)  # least recently *used* goes first
+            self._bytes.move_to_end(token)
         if lu is None:
             raise RuntimeError(
                 f"jaxvisco: factorization {token} is no longer cached (the cache keeps the "
