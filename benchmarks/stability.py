@@ -66,8 +66,10 @@ def table(rows, variant_names, scheme_names, hs):
     for v in variant_names:
         out.append(f"\n### {v}\n")
         out.append("Cell: `S` stable with non-increasing energy, `s` stable but energy rose in some step "
-                   "(largest rise / H0 given), `D` diverged/failed; `*` equilibrium reached; (n) Newton failures "
-                   "(halved steps).\n")
+                   "(largest rise / H0 given), `D` diverged (energy blow-up or non-finite, or a failed solve after "
+                   "energy rose), `F` Newton failed even after the allowed halvings with no energy rise so far "
+                   "(the run stops there); `*` equilibrium reached; (n) Newton failures (halved steps); t= the "
+                   "time reached by a run that stopped.\n")
         out.append("| scheme | " + " | ".join(f"h={h:g}" for h in hs) + " |")
         out.append("|---" * (len(hs) + 1) + "|")
         for s in scheme_names:
@@ -77,12 +79,19 @@ def table(rows, variant_names, scheme_names, hs):
                 if r is None:
                     cells.append("–")
                     continue
-                c = "D" if r["diverged"] else ("S" if r["energy_nonincreasing"] else f"s {r['max_step_increase_rel']:.1e}")
+                newton_only = (r["status"] == "failed" and np.isfinite(r["max_step_increase_rel"])
+                               and r["max_step_increase_rel"] <= INCREASE_TOL and abs(r["H_final"]) <= 10 * abs(r["H0"]))
+                if newton_only:
+                    c = "F"
+                elif r["diverged"]:
+                    c = "D"
+                else:
+                    c = "S" if r["energy_nonincreasing"] else f"s {r['max_step_increase_rel']:.1e}"
                 if r["equilibrium"]:
                     c += "*"
                 if r["newton_failures"]:
                     c += f" ({r['newton_failures']})"
-                if r["diverged"]:
+                if r["status"] == "failed":
                     c += f" t={r['t_final']:.3g}"
                 cells.append(c)
             out.append(f"| {s} | " + " | ".join(cells) + " |")
@@ -128,13 +137,20 @@ def main(argv=None):
     p.add_argument("--hs", default=None, help="comma list of step sizes (default: the issue's seven)")
     p.add_argument("--max-halvings", type=int, default=6, help="simulate's max_halvings (a run fails beyond it)")
     p.add_argument("--out", default="stability")
+    p.add_argument("--inputs", default=None, help="with --from-json: comma list of results files (names) to merge")
     p.add_argument("--from-json", action="store_true",
                    help="rebuild the table, summary and plot from an existing (possibly partial) results file")
     a = p.parse_args(argv)
     if a.from_json:
         import json
 
-        data = json.loads((RESULTS / f"{a.out}.json").read_text())
+        names = a.inputs.split(",") if a.inputs else [a.out]
+        data = json.loads((RESULTS / f"{names[0]}.json").read_text())
+        for other in names[1:]:  # runs of the same settings split over processes
+            more = json.loads((RESULTS / f"{other}.json").read_text())
+            data["rows"] += more["rows"]
+            data.setdefault("merged_from", names)
+            data.setdefault("machine_of_merged", []).append(more["machine"])
         finish(data, data["rows"], list(dict.fromkeys(r["variant"] for r in data["rows"])),
                list(dict.fromkeys(r["scheme"] for r in data["rows"])), data["settings"]["hs"],
                data["settings"]["t_end"], a.out)
