@@ -53,6 +53,9 @@ def test_vmap_and_sharded_batches_equal_single_runs():
     line = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT")][-1]
     r = json.loads(line[len("RESULT"):])
     assert r["spread"] > 1e-3  # the members really differ
-    assert r["d_single"] <= 1e-9, r  # vmap of 4 == 4 single runs (Newton tolerance 1e-10)
-    assert r["d_shard"] <= 1e-12, r  # the sharded batch == the unsharded batch
+    # Equal to the Newton tolerance (rtol 1e-10): batched and unbatched programs round
+    # differently in the last bits, which can change a GMRES iteration count and so the
+    # converged iterate within the tolerance (measured: 6e-11 and 8e-11).
+    assert r["d_single"] <= 1e-9, r  # vmap of 4 == 4 single runs
+    assert r["d_shard"] <= 1e-9, r  # the sharded batch == the unsharded batch
     assert r["devices"] == [0, 1], r  # and it really ran on both devices
