@@ -493,12 +493,18 @@ def test_long_run_10000_steps():
         del sol
         rss.append(_rss_mib())
     H, D, L, J = (np.concatenate(a) for a in (H, D, L, J))
+    rise = np.max(np.diff(H)) / H[0]
+    balance = np.max(np.abs(H - H[0] + D)) / H[0]
+    drift_L = np.max(np.abs(L - L[0])) / np.max(np.abs(L[0]))
+    drift_J = np.max(np.abs(J - J[0])) / abs(J[0])
+    print(f"H {H[0]:.10g} -> {H[-1]:.10g}; largest rise {rise:.3g} H0; balance {balance:.3g} H0; "
+          f"drift L {drift_L:.3g}, J {drift_J:.3g}; RSS after each 1000 steps (MiB) {[round(r) for r in rss]}")
     assert len(H) == 1001 and t == pytest.approx(1000.0)
-    assert np.all(np.diff(H) <= 0.0)
-    assert np.max(np.abs(H - H[0] + D)) <= 1e-9 * H[0]
-    assert np.max(np.abs(L - L[0])) <= 1e-10 * np.max(np.abs(L[0]))
-    assert np.max(np.abs(J - J[0])) <= 1e-10 * abs(J[0])
-    print(f"RSS after each 1000 steps (MiB): {[round(r) for r in rss]}")
+    # H_{n+1} - H_n = -D_n <= 0 holds to the Newton tolerance: near equilibrium (D_n ~ 0)
+    # H wanders by ~4e-12 H0 (measured), so "never increases" is checked at 1e-10 H0.
+    assert rise <= 1e-10
+    assert balance <= 1e-9
+    assert drift_L <= 1e-10 and drift_J <= 1e-10
     # flat: what chunks 3..10 add is small against what the process holds after chunk 2
     if rss[-1] - rss[1] > 0.1 * rss[1]:
         # Measured: ~0.15-0.3 MiB per step, freed-but-unreturned heap (glibc arenas) from
