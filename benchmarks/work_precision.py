@@ -172,6 +172,43 @@ def interpolate_at(rows, target=TARGET):
     return None
 
 
+def compare(runs):
+    at = {m: interpolate_at([x for x in runs if x["method"] == m]) for m in dict.fromkeys(x["method"] for x in runs)}
+    jv_best = {m: w for m, w in at.items() if w is not None and not m.startswith(("scipy", "diffrax"))}
+    best = min(jv_best, key=jv_best.get) if jv_best else None
+    speedup = {m: (w / jv_best[best] if (w is not None and best) else None)
+               for m, w in at.items() if m.startswith(("scipy", "diffrax"))}
+    return at, best, speedup
+
+
+def merge(names, out):
+    """Merge runs of the same scenes measured in separate processes (same settings)."""
+    datas = [json.loads((RESULTS / f"{n}.json").read_text()) for n in names]
+    data = datas[0]
+    data["merged_from"] = {n: dict(machine=d["machine"], settings=d["settings"],
+                                   references={k: v["reference"] for k, v in d["scenes"].items()})
+                           for n, d in zip(names, datas)}
+    for d in datas[1:]:
+        for key, sc in d["scenes"].items():
+            if key not in data["scenes"]:
+                data["scenes"][key] = sc
+                continue
+            # Methods measured in the other process replace the unfinished rows of this one.
+            measured = {r["method"] for r in sc["runs"] if np.isfinite(r.get("error", np.nan))}
+            kept = [r for r in data["scenes"][key]["runs"]
+                    if r["method"] not in measured or np.isfinite(r.get("error", np.nan))]
+            if len(kept) < len(data["scenes"][key]["runs"]):
+                data["scenes"][key].setdefault("notes", []).append(
+                    f"unfinished rows of {sorted(measured)} replaced by the runs of a separate process")
+            data["scenes"][key]["runs"] = kept + sc["runs"]
+            data["scenes"][key].setdefault("other_references", []).append(sc["reference"])
+    for key, sc in data["scenes"].items():
+        sc["wall_at_target_s"], sc["best_jaxvisco"], sc["speedup_at_target"] = compare(sc["runs"])
+        print(f"{key}: best jaxvisco {sc['best_jaxvisco']}, speedups {sc['speedup_at_target']}", flush=True)
+    write_json(f"{out}.json", data)
+    plot(data, RESULTS / f"{out}.png")
+
+
 def plot(data, path):
     import matplotlib
 
@@ -210,11 +247,18 @@ def main(argv=None):
     p.add_argument("--methods", default=None, help="comma list to restrict (e.g. eG(2),scipy Radau)")
     p.add_argument("--budget", type=float, default=None, help="seconds per run beyond which finer runs are skipped")
     p.add_argument("--out", default="work_precision")
+    p.add_argument("--reference", choices=("eG", "radau"), default="eG",
+                   help="radau: use the Radau rtol-1e-12 solution itself as the reference (no eG run)")
+    p.add_argument("--merge", default=None,
+                   help="comma list of results names to merge into --out (runs split over processes); no runs")
     p.add_argument("--diffrax-worker", default=None, help=argparse.SUPPRESS)
     p.add_argument("--tols", default=None, help=argparse.SUPPRESS)
     p.add_argument("--repeats", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--ref", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.merge:
+        merge(a.merge.split(","), a.out)
+        return
     if a.diffrax_worker:
         diffrax_worker(a.diffrax_worker, int(a.refinements), a.t_end, [float(t) for t in a.tols.split(",")],
                        a.budget, a.repeats, a.ref)
@@ -263,18 +307,24 @@ def main(argv=None):
         cap_ref = int(round(T / ref_h))
         if ref_scheme in hs:
             cap_ref = max(cap_ref, max(int(round(T / h)) for h in hs[ref_scheme]))
-        t0 = time.perf_counter()
-        sol = jv.simulate(scene, _schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref, max_steps=cap_ref,
-                          solver=jv.NewtonKrylov(rtol=1e-12))
-        ref_wall = time.perf_counter() - t0
-        ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]))
-        print(f"  reference {ref_scheme} h={ref_h}: H(T)={ref['H']:.12g}, {ref_wall:.1f}s", flush=True)
+        ref = None
+        ref_wall = None
+        if a.reference == "eG":
+            t0 = time.perf_counter()
+            sol = jv.simulate(scene, _schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref,
+                              max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
+            ref_wall = time.perf_counter() - t0
+            ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]))
+            print(f"  reference {ref_scheme} h={ref_h}: H(T)={ref['H']:.12g}, {ref_wall:.1f}s", flush=True)
         jax.block_until_ready(ode.rhs(0.0, ode.y0))
         ode.jac(0.0, ode.y0)
         t0 = time.perf_counter()
         rr = solve_ivp(ode.fun, (0.0, T), ode.y0, method="Radau", jac=ode.jac, rtol=ref_tol, atol=ref_tol)
         radau_wall = time.perf_counter() - t0
         yr = rr.y[:, -1]
+        if ref is None:
+            ref_scheme, ref_h = "scipy Radau", None
+            ref = dict(x=np.asarray(ode.unpack(yr).x), H=float(ode.energy(yr)))
         check = dict(radau_rtol=ref_tol, radau_success=bool(rr.success), radau_steps=int(rr.t.size - 1),
                      radau_wall_s=radau_wall, diff_x=rel(ode.unpack(yr).x, ref["x"]),
                      diff_H=abs(float(ode.energy(yr)) - ref["H"]) / abs(ref["H"]))
@@ -292,11 +342,7 @@ def main(argv=None):
                 runs += run_scipy(ode, method, tols, T, ref, budget, repeats)
             else:
                 runs += run_diffrax(ode, method, tols, T, ref, budget, repeats, worker_timeout, r)
-        at = {m: interpolate_at([x for x in runs if x["method"] == m]) for m in dict.fromkeys(x["method"] for x in runs)}
-        jv_best = {m: w for m, w in at.items() if w is not None and not m.startswith(("scipy", "diffrax"))}
-        best = min(jv_best, key=jv_best.get) if jv_best else None
-        speedup = {m: (w / jv_best[best] if (w is not None and best) else None)
-                   for m, w in at.items() if m.startswith(("scipy", "diffrax"))}
+        at, best, speedup = compare(runs)
         data["scenes"][key] = dict(
             refinement=r, dofs=ode.n, n_x=ode.n_x, n_gamma=ode.n_g,
             reference=dict(scheme=ref_scheme, h=ref_h, newton_rtol=1e-12, H=ref["H"], wall_s=ref_wall, **check),
