@@ -18,7 +18,7 @@ def _load(name):
 
 
 def main():
-    wp, st, sc, sk = (_load(n) for n in ("work_precision", "stability", "scaling", "skip_cost"))
+    wp, st, sc, sk, pr = (_load(n) for n in ("work_precision", "stability", "scaling", "skip_cost", "profile_step"))
     out = dict(machine=machine(), sources={}, targets={})
     del out["machine"]["load_average_at_start"]
     if wp:
@@ -72,6 +72,10 @@ def main():
         out["skip_cost_ms_per_step"] = {f"{r['material']}, save_every={r['save_every']}": r["ms_per_step"]
                                         for r in sk["rows"]}
         out["skip_cost_ratios"] = sk.get("ratios")
+    if pr:
+        out["profile_step"] = {r["scheme"]: dict(ms_per_step=r["ms_per_step"], host_lu_fraction=r["host_lu_fraction"],
+                                                 newton_per_step=r["newton_per_step"],
+                                                 krylov_per_step=r["krylov_per_step"]) for r in pr["rows"]}
     cs = [v for d in out.get("compile_s", {}).values() for v in d.values() if v is not None]
     l2d = out.get("compile_s", {}).get("work_precision (2D L-shape, first simulate call minus a timed call)", {})
     l2d = [v for m, v in l2d.items() if not m.startswith(("scipy", "diffrax"))]
