@@ -1,6 +1,8 @@
 """Derivatives of whole trajectories: implicit step derivatives through >= 100 steps
 against central finite differences (issue: gradients and identification)."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -43,19 +45,35 @@ def _theta0():
     return jnp.array([jnp.log(s.material.eta_dev), jnp.log(s.material.eta_vol), 1.0])
 
 
-@pytest.mark.parametrize("scheme", [jv.cG(1), jv.eG(1), jv.eG(2)], ids=["cG1", "eG1", "eG2"])
+@functools.lru_cache(maxsize=None)
+def _programs(scheme, checkpoint_every=None):
+    """Compiled reverse-mode gradient and forward-mode (value, directional derivative) of
+    the loss, shared by the tests of one scheme (compilation dominates their time)."""
+    loss = _loss_fn(scheme, checkpoint_every)
+    grad = eqx.filter_jit(jax.grad(loss))
+    jvp = eqx.filter_jit(lambda t, d: jax.jvp(loss, (t,), (d,)))
+    return grad, jvp
+
+
+@pytest.mark.parametrize(
+    "scheme",
+    [pytest.param(jv.cG(1), marks=pytest.mark.slow), jv.eG(1), pytest.param(jv.eG(2), marks=pytest.mark.slow)],
+    ids=["cG1", "eG1", "eG2"])
 def test_reverse_gradient_matches_finite_differences(scheme):
-    loss = _loss_fn(scheme)
+    grad, jvp = _programs(scheme)
     theta = _theta0()
-    g = np.asarray(eqx.filter_jit(jax.grad(loss))(theta))
-    f = eqx.filter_jit(loss)
+    g = np.asarray(grad(theta))
+    zero = jnp.zeros(3)
+
+    def f(t):  # the loss value (the primal output of the forward-mode program)
+        return float(jvp(t, zero)[0])
+
     # Fourth-order central differences: the truncation error is negligible at eps = 1e-3,
     # where the Newton tolerance's noise in the loss (~1e-10) is still far below 1e-6.
     eps = 1e-3
     for i in range(3):
-        e = jnp.zeros(3).at[i].set(eps)
-        fd = (8 * (float(f(theta + e)) - float(f(theta - e))) - (float(f(theta + 2 * e)) - float(f(theta - 2 * e)))) / (
-            12 * eps)
+        e = zero.at[i].set(eps)
+        fd = (8 * (f(theta + e) - f(theta - e)) - (f(theta + 2 * e) - f(theta - 2 * e))) / (12 * eps)
         rel = abs(g[i] - fd) / abs(fd)
         assert rel <= 1e-6, f"d loss / d theta[{i}]: reverse {g[i]!r}, central FD {fd!r}, rel. error {rel:.2e}"
 
@@ -64,15 +82,13 @@ def test_forward_mode_equals_reverse_mode_and_checkpointing_changes_nothing():
     """jax.jvp through the run equals the gradient's projection; the segment length of
     the checkpointed loop does not change the result."""
     theta = _theta0()
-    loss = _loss_fn(jv.eG(1))
+    grad, jvp = _programs(jv.eG(1))
     d = jnp.array([0.3, -0.7, 0.2])
-    _, tangent = eqx.filter_jit(lambda t, d: jax.jvp(loss, (t,), (d,)))(theta, d)
-    g = eqx.filter_jit(jax.grad(loss))(theta)
+    _, tangent = jvp(theta, d)
+    g = grad(theta)
     assert abs(float(tangent) - float(g @ d)) <= 1e-9 * abs(float(tangent))
-    g5 = eqx.filter_jit(jax.grad(_loss_fn(jv.eG(1), checkpoint_every=5)))(theta)
+    g5 = _programs(jv.eG(1), checkpoint_every=5)[0](theta)
     np.testing.assert_allclose(np.asarray(g5), np.asarray(g), rtol=1e-10)
-
-
 def test_differentiable_run_equals_adaptive_run():
     scene = _scene()
     a = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.25, solver=SOLVER)
