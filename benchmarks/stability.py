@@ -137,6 +137,7 @@ def main(argv=None):
     p.add_argument("--hs", default=None, help="comma list of step sizes (default: the issue's seven)")
     p.add_argument("--max-halvings", type=int, default=6, help="simulate's max_halvings (a run fails beyond it)")
     p.add_argument("--out", default="stability")
+    p.add_argument("--note", default=None, help="with --from-json: a note added to the results")
     p.add_argument("--inputs", default=None, help="with --from-json: comma list of results files (names) to merge")
     p.add_argument("--from-json", action="store_true",
                    help="rebuild the table, summary and plot from an existing (possibly partial) results file")
@@ -151,6 +152,8 @@ def main(argv=None):
             data["rows"] += more["rows"]
             data.setdefault("merged_from", names)
             data.setdefault("machine_of_merged", []).append(more["machine"])
+        if a.note:
+            data["note"] = a.note
         finish(data, data["rows"], list(dict.fromkeys(r["variant"] for r in data["rows"])),
                list(dict.fromkeys(r["scheme"] for r in data["rows"])), data["settings"]["hs"],
                data["settings"]["t_end"], a.out)
@@ -188,10 +191,11 @@ def main(argv=None):
 
 def finish(data, rows, vs, sc, hs, T, out):
     done = {(r["scheme"], r["variant"]) for r in rows}
-    complete = all((s, v) in done for s in sc for v in vs)
+    ran = {(r["scheme"], r["variant"], r["h"]) for r in rows}
+    missing = [f"{s} / {v} / h={h:g}" for s in sc for v in vs for h in hs if (s, v, h) not in ran]
+    complete = not missing
     if not complete:
-        data["incomplete"] = "not every scheme x variant ran: " + ", ".join(
-            f"{s}/{v}" for s in sc for v in vs if (s, v) not in done) + " missing"
+        data["incomplete"] = "runs missing: " + "; ".join(missing)
     largest = {}
     for s_name in sc:
         ok = [r["h"] for r in rows if r["scheme"] == s_name and r["energy_nonincreasing"]]
@@ -213,6 +217,8 @@ def finish(data, rows, vs, sc, hs, T, out):
         md.append(f"- {s_name}: {d['largest_stable_nonincreasing_h_all_variants']} (per variant: {d['per_variant']})")
     if not complete:
         md += ["", f"**Incomplete:** {data['incomplete']}."]
+    if data.get("note"):
+        md += ["", f"**Note:** {data['note']}"]
     (RESULTS / f"{out}.md").write_text("\n".join(md) + "\n")
     write_json(f"{out}.json", data)
     plot(rows, vs, sc, RESULTS / f"{out}.png")
