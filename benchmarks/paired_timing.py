@@ -61,9 +61,9 @@ def main(argv=None):
         err = next((r["error"] for r in src if r["method"] == m and r.get(key) == par), None)
         runs.append(dict(method=m, **{key: par}, error=err, wall_s=statistics.median(ts), times_s=ts))
     at, best, speedup = wp.compare(runs)
-    data = dict(machine=machine(), settings=dict(rounds=rounds, t_end=T, warmup_s=warm,
-                                                 errors="from work_precision.json (deterministic computations)"),
-                runs=runs, wall_at_1e-6_s=at, best_jaxvisco=best, speedup_at_1e-6=speedup)
+    data = {"machine": machine(), "settings": dict(rounds=rounds, t_end=T, warmup_s=warm,
+                                                   errors="from work_precision.json (deterministic computations)"),
+            "runs": runs, "wall_at_1e-6_s": at, "best_jaxvisco": best, "speedup_at_1e-6": speedup}
     print(at, speedup, flush=True)
     write_json("paired_timing.json", data)
 
