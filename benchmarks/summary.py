@@ -74,10 +74,11 @@ def main():
         out["skip_cost_ratios"] = sk.get("ratios")
     pt = _load("paired_timing")
     if pt:
-        out["speedup_at_1e-6_load_matched"] = dict(
-            speedup=pt["speedup_at_1e-6"], wall_at_1e-6_s=pt["wall_at_1e-6_s"], best_jaxvisco=pt["best_jaxvisco"],
-            note="eG(2) and scipy runs re-timed interleaved (paired_timing.py), errors from work_precision.json; "
-                 "diffrax not re-timed")
+        out["speedup_at_1e-6_load_matched"] = {
+            "speedup": pt["speedup_at_1e-6"], "wall_at_1e-6_s": pt["wall_at_1e-6_s"],
+            "best_jaxvisco": pt["best_jaxvisco"],
+            "note": "eG(2) and scipy runs re-timed interleaved (paired_timing.py), errors from "
+                    "work_precision.json; diffrax not re-timed"}
     if pr:
         out["profile_step"] = {r["scheme"]: dict(ms_per_step=r["ms_per_step"], host_lu_fraction=r["host_lu_fraction"],
                                                  newton_per_step=r["newton_per_step"],
