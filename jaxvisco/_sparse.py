@@ -9,6 +9,7 @@ loop treats as a failed step.
 """
 
 import collections
+import concurrent.futures
 import functools
 import itertools
 
@@ -79,10 +80,26 @@ class HostLU:
         return lu.solve(np.asarray(b, dtype=np.float64), trans="T" if trans else "N")
 
 
+# All SuperLU work runs on one dedicated host thread. XLA calls the callbacks from its
+# own (changing) threads, and glibc keeps the memory SuperLU frees in per-thread arenas:
+# a 10 000-step run grew by ~0.27 MiB per step that way, while on one thread the
+# resident memory stayed flat (1682.2 -> 1682.4 MiB over 900 steps, measured).
+_WORKER = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxvisco-superlu")
+
+
+def _on_worker(fn):
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        return _WORKER.submit(fn, *args, **kwargs).result()
+
+    return run
+
+
 def lu_factor(host: HostLU, data):
     """Factor the matrix with COO values `data`; returns an integer token."""
     data = jax.lax.stop_gradient(data)
-    return jax.pure_callback(host.factor, jax.ShapeDtypeStruct((), jnp.int64), data, vmap_method="sequential")
+    return jax.pure_callback(_on_worker(host.factor), jax.ShapeDtypeStruct((), jnp.int64), data,
+                             vmap_method="sequential")
 
 
 def lu_solve(host: HostLU, token, b, trans=False):
@@ -98,7 +115,7 @@ def lu_solve(host: HostLU, token, b, trans=False):
 
 def _lu_solve_impl(token, b, *, host, trans):
     return jax.pure_callback(
-        functools.partial(host.solve, trans=trans), jax.ShapeDtypeStruct(b.shape, b.dtype),
+        _on_worker(functools.partial(host.solve, trans=trans)), jax.ShapeDtypeStruct(b.shape, b.dtype),
         token, b, vmap_method="sequential",
     )
 
