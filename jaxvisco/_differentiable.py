@@ -26,14 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from ._implicit import solve_step_implicit
-from ._step import (
-    end_state,
-    end_velocity,
-    external_work,
-    make_context,
-    predictor,
-    step_dissipation,
-)
+from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent
 
 RUNNING, FAILED, DONE = 0, 1, 3
@@ -68,16 +61,10 @@ def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_g
             ctx = make_context(scene, c["state"], c["t"], h)
             U0 = predictor(scheme, scene, ctx, c["v"])
             r = solve_step_implicit(solver, scheme, scene, ctx, U0, c["tan"])
-            new = end_state(scheme, scene, ctx, r.U)
-            D = step_dissipation(scheme, scene, ctx, r.U)
-            W = external_work(scheme, scene, ctx, r.U)
-            finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.p)) & jnp.isfinite(D)
-            if new.gamma is not None:
-                finite = finite & jnp.all(jnp.isfinite(new.gamma))
-            ok = r.converged & finite
+            new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
             keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(ok, x, y), a, b)  # noqa: E731
             out = dict(state=keep(new, c["state"]), t=jnp.where(ok, c["t"] + h, c["t"]),
-                       v=keep(end_velocity(scheme, ctx, r.U), c["v"]), tan=r.tangent,
+                       v=keep(v_end, c["v"]), tan=r.tangent,
                        dissipated=c["dissipated"] + jnp.where(ok, D, 0.0),
                        work=c["work"] + jnp.where(ok, W, 0.0),
                        status=jnp.where(ok, c["status"], FAILED), n_done=c["n_done"] + ok.astype(int))

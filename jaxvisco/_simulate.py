@@ -17,14 +17,7 @@ from ._differentiable import layout, run_scan
 from ._newton import NewtonKrylov, solve_step
 from ._scene import Scene, State
 from ._schedule import step_sizes
-from ._step import (
-    end_state,
-    end_velocity,
-    external_work,
-    make_context,
-    predictor,
-    step_dissipation,
-)
+from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent, position_pattern
 from ._tensor import small_solve
 from ._time_element import AbstractTimeElement
@@ -260,13 +253,7 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
             hs_ = h / (2.0 ** c["level"])
             ctx = make_context(scene, c["state"], c["t"], hs_)
             r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
-            new = end_state(scheme, scene, ctx, r.U)
-            D = step_dissipation(scheme, scene, ctx, r.U)
-            W = external_work(scheme, scene, ctx, r.U)
-            finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.p)) & jnp.isfinite(D)
-            if new.gamma is not None:
-                finite = finite & jnp.all(jnp.isfinite(new.gamma))
-            ok = r.converged & finite
+            new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
             pick = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(ok, x, y), a, b)  # noqa: E731
             pos = c["pos"] + jnp.where(ok, jnp.right_shift(full, c["level"]), 0)
             # Grow back once the position is aligned with the coarser grid.
@@ -275,7 +262,7 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
                               c["level"] + 1)
             return dict(
                 state=pick(new, c["state"]), t=jnp.where(ok, c["t"] + hs_, c["t"]),
-                v=pick(end_velocity(scheme, ctx, r.U), c["v"]), tan=r.tangent, level=level, pos=pos,
+                v=pick(v_end, c["v"]), tan=r.tangent, level=level, pos=pos,
                 its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
                 rej=c["rej"] + jnp.where(ok, 0, 1), D=c["D"] + jnp.where(ok, D, 0.0),
                 W=c["W"] + jnp.where(ok, W, 0.0), res=jnp.maximum(c["res"], jnp.where(ok, r.residual, 0.0)),

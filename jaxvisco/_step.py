@@ -150,3 +150,15 @@ def predictor(scheme, scene, ctx, velocity) -> Unknowns:
     if ctx.state.gamma is not None:
         g = jnp.broadcast_to(sym_to_vec(ctx.state.gamma)[None], (len(alpha),) + ctx.state.gamma.shape[:-2] + (6,))
     return Unknowns(x, g)
+
+
+def step_outcome(scheme, scene, ctx, r):
+    """What a solved step yields: end state, dissipation, external work, end velocity,
+    and whether it is acceptable (Newton converged and every value finite)."""
+    new = end_state(scheme, scene, ctx, r.U)
+    D = step_dissipation(scheme, scene, ctx, r.U)
+    W = external_work(scheme, scene, ctx, r.U)
+    finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.p)) & jnp.isfinite(D)
+    if new.gamma is not None:
+        finite = finite & jnp.all(jnp.isfinite(new.gamma))
+    return new, D, W, end_velocity(scheme, ctx, r.U), r.converged & finite
