@@ -6,9 +6,9 @@ Its derivative is $dU = -R_U^{-1} R_\\theta\\,d\\theta$, so Newton's iterations 
 differentiated: `solve_step_implicit` is a `custom_jvp` whose rule forms the condensed
 tangent at the converged $U$ and solves the one linear system with the exact block
 solve (`schur_solve`) plus iterative refinement. Every piece of that rule is linear
-in the tangents and transposable (the sparse LU solve is a primitive with a transpose rule), so reverse mode works through
-JAX's transposition of the rule: one transposed solve per step with the transposed
-factors, the pattern of optimistix's implicit differentiation.
+in the tangents and transposable (the sparse LU solve is a primitive with a transpose
+rule), so reverse mode works through JAX's transposition of the rule: one transposed
+solve per step with the transposed factors, the pattern of optimistix's implicit differentiation.
 """
 
 import equinox as eqx
@@ -54,7 +54,7 @@ def _solve_jvp(primals, tangents, *, solver, scheme):
     # Symbolic zeros (a block that does not depend on what is differentiated) -> zeros.
     dR = jax.tree_util.tree_map(lambda t, r: jnp.zeros_like(r) if t is None else t, dR, R,
                                 is_leaf=lambda t: t is None)
-    sx = jnp.maximum(_scale(ctx, scene, residual(scheme, scene, ctx, U)), 1e-300)
+    sx = jnp.maximum(_scale(ctx, scene, R), 1e-300)  # R: the residual at U, from the JVP above
 
     def scaled(R):
         return eqx.tree_at(lambda r: r.x, R, R.x / sx)
