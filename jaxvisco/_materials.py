@@ -114,6 +114,18 @@ class ReeseGovindjee(eqx.Module):
             raise ValueError("gamma_rate: this material has no internal variable (nonequilibrium=None).")
         return sym(2.0 * Gamma @ self.inverse_viscosity(self.mandel_stress(C, Gamma)))
 
+    def gamma_rate_from_force(self, Y, Gamma):
+        r"""The evolution law written in its driving force $Y$ (symmetric, in place of
+        $\partial\Psi/\partial\Gamma$): $\dot\Gamma = 2\Gamma(\mathbb{V}^{-1}:M)$ with
+        $M = -2Y\Gamma$, which is $M_e$ when $Y = \partial\Psi/\partial\Gamma$.
+
+        For every symmetric $Y$ and SPD $\Gamma$, $-Y:\dot\Gamma = \operatorname{tr}(M\,
+        \mathbb{V}^{-1}:M) \ge 0$ ($M$ is similar to a symmetric tensor): eG drives the flow
+        with its algorithmic force so that its dissipation is non-negative by construction.
+        """
+        M = -2.0 * Y @ Gamma
+        return sym(2.0 * Gamma @ self.inverse_viscosity(M))
+
     def dissipation(self, C, Gamma):
         r"""Dissipation per reference volume $D = -\partial\Psi/\partial\Gamma : \dot\Gamma \ge 0$."""
         if not self.has_internal_variable:

@@ -62,6 +62,7 @@ class AbstractTimeElement(eqx.Module):
         V = jnp.asarray(m["V"])
         Fl = jnp.einsum("lI,Iij->lij", V, F)
         Gl = None if G is None else jnp.einsum("lI,Iij->lij", V, G)
+        e = None
         if self.enhanced:
             e = self._enhanced_terms(material, F, G)
             Cl, S = e["Cbar"], e["S"] + 2.0 * e["beta"] * e["Cd"]
@@ -71,6 +72,15 @@ class AbstractTimeElement(eqx.Module):
         P = Fl @ S
         if G is None:
             return P, None
+        if e is not None:
+            # The flow is driven by the algorithmic force (the energy gradient at the
+            # assumed strains plus its share of the correction), the same force the
+            # dissipation pairs with Gamma': with collocation at the Gauss points every
+            # point's D_n is a sum of non-negative terms (see `point_dissipation`).
+            Y = e["dpsi_dG"] + 4.0 * e["beta"] * e["Gd"]
+            rate = jax.vmap(material.gamma_rate_from_force)(Y, Gl)
+            R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), e["Gd"] - h * rate)
+            return P, sym_to_vec(R_G)
         if mg is m:
             Cg, Gg = Cl, Gl
         else:  # a separate rule for the evolution law (Newmark's midpoint)
@@ -120,9 +130,13 @@ class AbstractTimeElement(eqx.Module):
     def point_dissipation(self, material, F, G, h):
         """Energy dissipated at one spatial point over the step (per reference volume).
 
-        eG: $-\\int (\\partial_\\Gamma\\Psi + Y_{alg}) : \\Gamma_h' d\\alpha$, which closes
-        the discrete energy balance exactly; otherwise the time quadrature of the
-        physical dissipation rate.
+        eG: $-\\int Y : \\Gamma_h' d\\alpha$ with the algorithmic driving force
+        $Y = \\partial_\\Gamma\\Psi(\\bar C, \\Gamma_h) + Y_{alg}$, which closes the discrete
+        energy balance exactly. The flow rule is collocated at the Gauss points with the
+        same $Y$, so with k points (the default) this equals
+        $h\\sum_l w_l \\operatorname{tr}(M_l\\,\\mathbb{V}^{-1}:M_l) \\ge 0$, $M_l = -2Y_l\\Gamma_l$;
+        with more points than k the weak flow rule is no longer collocation and the sign
+        is not guaranteed. Otherwise: the time quadrature of the physical dissipation rate.
         """
         if G is None:
             return jnp.zeros((), dtype=F.dtype)

@@ -129,6 +129,28 @@ def _dev_sq(M):
 
 @pytest.mark.timeout(120)
 @settings(max_examples=25, deadline=None)
+@given(A=_mat, B=_mat, Y=_mat, which=st.sampled_from(sorted(MATERIALS)))
+def test_flow_rule_in_its_driving_force(A, B, Y, which):
+    """The flow rule written in its driving force (what eG drives with its algorithmic
+    force) is the material's at Y = dPsi/dGamma, and dissipates for any symmetric Y:
+    -Y : Gamma' = tr(M V^-1:M) >= 0 with M = -2 Y Gamma."""
+    m, f = MATERIALS[which], _jitted(which)
+    C, G = _near_identity_spd(A), _near_identity_spd(B)
+    g = np.asarray(f["dpsi_dG"](C, G))
+    rate = np.asarray(f["rate"](C, G))
+    by_force = np.asarray(_jit(m, "gamma_rate_from_force", jnp.asarray(g), jnp.asarray(G)))
+    mu, eta = float(m.nonequilibrium.mu), min(float(m.eta_dev), float(m.eta_vol))
+    np.testing.assert_allclose(by_force, rate, rtol=0, atol=1e-9 * (np.abs(rate).max() + 1e-6 * mu / eta))
+    Ys = mu * 0.5 * (Y + Y.T)  # an arbitrary symmetric force, not an energy gradient
+    r = np.asarray(_jit(m, "gamma_rate_from_force", jnp.asarray(Ys), jnp.asarray(G)))
+    M = -2.0 * Ys @ G
+    closed = _dev_sq(M) / (2.0 * float(m.eta_dev)) + np.trace(M) ** 2 / (9.0 * float(m.eta_vol))
+    assert closed >= 0.0
+    assert -np.sum(Ys * r) == pytest.approx(closed, rel=1e-10, abs=1e-20 * mu**2 / eta)
+
+
+@pytest.mark.timeout(120)
+@settings(max_examples=25, deadline=None)
 @given(A=_mat, B=_mat, which=st.sampled_from(sorted(MATERIALS)))
 def test_dissipation_identities(A, B, which):
     m, f = MATERIALS[which], _jitted(which)
