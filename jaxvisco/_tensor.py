@@ -6,35 +6,42 @@ local (per quadrature point) systems are written out with plain array arithmetic
 """
 
 import jax.numpy as jnp
+import numpy as np
 
 # Voigt order of the six independent components of a symmetric 3x3 tensor.
 _VOIGT = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
 
 
+# Cyclic shifts of an axis of length 3, result[i] = a[(i + s) % 3], as products with
+# constant permutation matrices rather than 9 indexed scalars (or slices and
+# concatenations): one dot each way under differentiation, so the programs that
+# differentiate these functions twice (residual, tangent, step derivative) stay small;
+# XLA compile time grows with the number of operations (the element-wise form doubled it).
+_PERM = {s: np.eye(3)[:, [(i + s) % 3 for i in range(3)]] for s in (1, 2)}  # (a @ P)[i] = a[(i+s)%3]
+
+
+def _shift(a, s, axis):
+    P = jnp.asarray(_PERM[s], dtype=a.dtype)
+    if axis == -1:
+        return a @ P
+    return jnp.swapaxes(jnp.swapaxes(a, -1, -2) @ P, -1, -2)
+
+
+def _cross_rows(a, b):
+    """Cross products of the last axes of `a` and `b` (..., 3)."""
+    return _shift(a, 1, -1) * _shift(b, 2, -1) - _shift(a, 2, -1) * _shift(b, 1, -1)
+
+
 def det3(A):
-    """Determinant of (..., 3, 3) by cofactor expansion."""
-    return (
-        A[..., 0, 0] * (A[..., 1, 1] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 1])
-        - A[..., 0, 1] * (A[..., 1, 0] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 0])
-        + A[..., 0, 2] * (A[..., 1, 0] * A[..., 2, 1] - A[..., 1, 1] * A[..., 2, 0])
-    )
+    """Determinant of (..., 3, 3): ``A_0 . (A_1 x A_2)`` of its rows."""
+    return jnp.sum(A[..., 0, :] * _cross_rows(A[..., 1, :], A[..., 2, :]), axis=-1)
 
 
 def cofactor3(A):
-    """Cofactor matrix of (..., 3, 3): ``cof(A) = det(A) A^{-T}``."""
-    c00 = A[..., 1, 1] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 1]
-    c01 = A[..., 1, 2] * A[..., 2, 0] - A[..., 1, 0] * A[..., 2, 2]
-    c02 = A[..., 1, 0] * A[..., 2, 1] - A[..., 1, 1] * A[..., 2, 0]
-    c10 = A[..., 0, 2] * A[..., 2, 1] - A[..., 0, 1] * A[..., 2, 2]
-    c11 = A[..., 0, 0] * A[..., 2, 2] - A[..., 0, 2] * A[..., 2, 0]
-    c12 = A[..., 0, 1] * A[..., 2, 0] - A[..., 0, 0] * A[..., 2, 1]
-    c20 = A[..., 0, 1] * A[..., 1, 2] - A[..., 0, 2] * A[..., 1, 1]
-    c21 = A[..., 0, 2] * A[..., 1, 0] - A[..., 0, 0] * A[..., 1, 2]
-    c22 = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
-    return jnp.stack(
-        [jnp.stack([c00, c01, c02], -1), jnp.stack([c10, c11, c12], -1), jnp.stack([c20, c21, c22], -1)],
-        -2,
-    )
+    """Cofactor matrix of (..., 3, 3): ``cof(A) = det(A) A^{-T}``;
+    ``cof_ij = A_{i+1,j+1} A_{i+2,j+2} - A_{i+1,j+2} A_{i+2,j+1}`` (indices mod 3)."""
+    a, b = _shift(A, 1, -2), _shift(A, 2, -2)
+    return _shift(a, 1, -1) * _shift(b, 2, -1) - _shift(a, 2, -1) * _shift(b, 1, -1)
 
 
 def inv3(A):
