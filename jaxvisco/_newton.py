@@ -151,16 +151,19 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         dU = dU_s
         phi0 = _merit(R, sx)
 
+        # Backtracking as a do-while loop: the full step is tried in the loop body too,
+        # so the program holds one copy of the residual for the line search, not two.
         def ls_cond(s):
             a, Rn, n = s
-            return (_merit(Rn, sx) > (1.0 - 1e-4 * a) * phi0) & (n < solver.line_search)
+            return (n == 0) | ((_merit(Rn, sx) > (1.0 - 1e-4 * a) * phi0) & (n <= solver.line_search))
 
         def ls_body(s):
             a, _, n = s
-            a = 0.5 * a
+            a = jnp.where(n == 0, 1.0, 0.5 * a)
             return a, res(_axpy(a, dU, U)), n + 1
 
-        a, Rn, n_ls = jax.lax.while_loop(ls_cond, ls_body, (jnp.asarray(1.0), res(_axpy(1.0, dU, U)), 0))
+        a, Rn, n_ls = jax.lax.while_loop(ls_cond, ls_body, (jnp.asarray(1.0), R, 0))
+        n_ls = n_ls - 1  # halvings
         U = _axpy(a, dU, U)
         new_norm = _norm(Rn, sx)
         refresh = direct | (n_lin > solver.refresh_after) | (n_ls > 0)
