@@ -449,15 +449,19 @@ def test_eg_momenta_and_energy_balance(shift, velocities, lam, mu, lam2, mu2, et
     angular momentum are conserved and H_{n+1} - H_n + D_n = 0 with D_n >= 0."""
     scene = small_random_scene(shift, velocities, lam, mu, lam2, mu2, eta_dev, eta_vol, density)
     sol = run_small(scene, dt, throw=False)
-    # Solver failures are a separate, known problem (test_rigid_translation_converges);
-    # here only solved runs are checked.
+    # A step that cannot be solved is reported by status (tested elsewhere); here only
+    # solved runs are checked.
     assume(sol.status == "done")
     assert len(sol.t) == N_STEPS + 1
     H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
     x, p = np.asarray(sol.x), np.asarray(sol.p)
     L, J = np.asarray(sol.linear_momentum), np.asarray(sol.angular_momentum)
     dD = np.diff(D)
-    assert np.max(np.abs(np.diff(H) + dD)) <= 1e-9 * H[0]
+    # H itself is evaluated with rounding error: at F ~ I the free energy's terms
+    # (mu/2 (tr C - 3), mu ln J, ...) cancel, leaving ~eps (mu + lam) per unit volume. A body
+    # moving slowly (H_0 ~ 3e-5 with mu = 1e3 was drawn) has H_0 below 1e9 times that.
+    floor = 64 * np.finfo(float).eps * (lam + mu + lam2 + mu2) * float(scene.disc.volume())
+    assert np.max(np.abs(np.diff(H) + dD)) <= 1e-9 * H[0] + floor
     assert np.all(dD >= -1e-13 * H[0])
     L_scale = np.sum(np.abs(p[0]))
     J_scale = np.sum(np.linalg.norm(x[0], axis=1) * np.linalg.norm(p[0], axis=1))
