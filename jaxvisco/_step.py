@@ -1,7 +1,7 @@
 """One time element over the whole mesh: unknowns, residual, dissipation, predictor.
 
-Unknowns of a step are the positions at the k new time nodes and, where the material
-has a viscous branch, the internal variable at the k new nodes and every spatial
+Unknowns of a step are the position increments $x_I - x_n$ at the k new time nodes and,
+where the material has a viscous branch, the internal variable at the k new nodes and every spatial
 quadrature point (6 Voigt components). The nodal momenta are eliminated exactly (they
 follow linearly from the weak form of $M\\dot x = p$; see `time_element_matrices`), so
 the momentum equations become a system in positions, like Newmark's in displacements.
@@ -18,7 +18,7 @@ from ._tensor import sym_to_vec, vec_to_sym
 
 
 class Unknowns(eqx.Module):
-    x: jax.Array  # (k, n_nodes, dim)
+    x: jax.Array  # (k, n_nodes, dim): increments x_I - x_n (see `nodal_fields`)
     g: Optional[jax.Array]  # (k, n_cells, nq, 6) or None
 
 
@@ -37,15 +37,24 @@ def make_context(scene: Scene, state: State, t0, h) -> StepContext:
 
 
 def nodal_fields(scheme, scene, ctx, U):
-    """Positions (k+1, n, d), deformation gradients and internal variables at the time
-    nodes of every spatial quadrature point (n_cells, nq, k+1, 3, 3)."""
-    X = jnp.concatenate([ctx.state.x[None], U.x], axis=0)
-    F = jnp.concatenate([ctx.F0[None], scene.disc.deformation_gradient(U.x)], axis=0)
+    """Position increments $X_I - x_n$ (k+1, n, d; zero at the first node), deformation
+    gradients and internal variables at the time nodes of every spatial quadrature point
+    (n_cells, nq, k+1, 3, 3).
+
+    The unknowns are increments, not positions: a body that has flown far from the origin
+    (|x| ~ 600 at t = 100 on the paper's L-shape, moving 0.6 per step) can resolve a
+    position only to ulp(600) ~ 1e-13, i.e. its step to ~2e-13 relative, and the momenta
+    $\\propto M(X_I - x_n)/h$ carried that noise into an angular-momentum drift. The
+    operators acting on positions in time annihilate constants, so they act on the
+    increments unchanged, and F = F_n + grad(increment) is translation-free.
+    """
+    dX = jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
+    F = jnp.concatenate([ctx.F0[None], ctx.F0[None] + scene.disc.gradient(U.x)], axis=0)
     F = jnp.moveaxis(F, 0, 2)
     if U.g is None:
-        return X, F, None
+        return dX, F, None
     G = jnp.concatenate([ctx.state.gamma[None], vec_to_sym(U.g)], axis=0)
-    return X, F, jnp.moveaxis(G, 0, 2)
+    return dX, F, jnp.moveaxis(G, 0, 2)
 
 
 def _over_points(fn, F, G):
@@ -56,7 +65,8 @@ def _over_points(fn, F, G):
 
 
 def momenta(scheme, scene, ctx, X):
-    """Nodal momenta at the k new time nodes, from the weak form of $M\\dot x = p$."""
+    """Nodal momenta at the k new time nodes, from the weak form of $M\\dot x = p$, given
+    the position increments X (k+1, n, d) of `nodal_fields`."""
     m, _ = scheme.matrices()
     MX = scene.disc.mass_matvec(X, scene.density)
     return (jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["Pm"]), MX) / ctx.h
@@ -96,7 +106,7 @@ def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
         # Held components: the momentum equation is replaced by the constraint, scaled
         # to momentum units like the rows it replaces.
         mask = jnp.asarray(scene.fixed.array)[None]
-        R_x = jnp.where(mask, (U.x - scene.x0[None]) * constraint_scale(scene, ctx.h), R_x)
+        R_x = jnp.where(mask, (ctx.state.x[None] + U.x - scene.x0[None]) * constraint_scale(scene, ctx.h), R_x)
     return Unknowns(R_x, None if R_G is None else jnp.moveaxis(R_G, 2, 0))
 
 
@@ -119,7 +129,7 @@ def external_work(scheme, scene, ctx, U):
     if scene.load is None:
         return jnp.zeros((), dtype=ctx.h.dtype)
     m, _ = scheme.matrices()
-    X = jnp.concatenate([ctx.state.x[None], U.x], axis=0)
+    X = jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
     Xd = jnp.einsum("lI,Ind->lnd", jnp.asarray(m["D"]), X)
     ts = ctx.t0 + ctx.h * jnp.asarray(m["points"])
     fext = jax.vmap(scene.external_force)(ts)
@@ -127,25 +137,25 @@ def external_work(scheme, scene, ctx, U):
 
 
 def end_state(scheme, scene, ctx, U) -> State:
-    p_new = momenta(scheme, scene, ctx, jnp.concatenate([ctx.state.x[None], U.x], axis=0))
+    p_new = momenta(scheme, scene, ctx, jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0))
     gamma = None if U.g is None else vec_to_sym(U.g[-1])
-    return State(U.x[-1], p_new[-1], gamma)
+    return State(ctx.state.x + U.x[-1], p_new[-1], gamma)
 
 
 def end_velocity(scheme, ctx, U):
     """$x_h'(1)/h$: a cheap velocity estimate for the next predictor."""
     m, _ = scheme.matrices()
-    X = jnp.concatenate([ctx.state.x[None], U.x], axis=0)
+    X = jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
     return jnp.einsum("I,Ind->nd", jnp.asarray(m["D_end"]), X) / ctx.h
 
 
 def predictor(scheme, scene, ctx, velocity) -> Unknowns:
-    """Uniform motion for positions, frozen internal variable."""
+    """Uniform motion for the position increments, frozen internal variable."""
     m, _ = scheme.matrices()
     alpha = jnp.asarray(m["nodes"][1:])
-    x = ctx.state.x[None] + alpha[:, None, None] * ctx.h * velocity[None]
+    x = alpha[:, None, None] * ctx.h * velocity[None]
     if scene.fixed is not None:
-        x = jnp.where(jnp.asarray(scene.fixed.array)[None], scene.x0[None], x)
+        x = jnp.where(jnp.asarray(scene.fixed.array)[None], (scene.x0 - ctx.state.x)[None], x)
     g = None
     if ctx.state.gamma is not None:
         g = jnp.broadcast_to(sym_to_vec(ctx.state.gamma)[None], (len(alpha),) + ctx.state.gamma.shape[:-2] + (6,))
