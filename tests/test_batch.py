@@ -34,11 +34,13 @@ SCRIPT = textwrap.dedent(
     for i in range(4):
         x, e, d, ni = single(etas[i], vs[i])
         assert int(ni) == int(n[i]) == 11
-        d_single = max(d_single, float(jnp.max(jnp.abs(x - X[i]))), float(jnp.max(jnp.abs(e - E[i]))),
-                       float(jnp.max(jnp.abs(d - D[i]))))
+        # Positions and dissipated energy absolutely; H relative to H_0, since it responds
+        # to a position difference dx by ~f_int dx (stiff: f_int ~ 300 here).
+        d_single = max(d_single, float(jnp.max(jnp.abs(x - X[i]))), float(jnp.max(jnp.abs(d - D[i]))),
+                       float(jnp.max(jnp.abs(e - E[i]))) / float(e[0]) * 1e2)
     Xs, Es, Ds, ns = jv.sharded_map(run, etas, vs)
     devices = sorted({d.id for d in Xs.sharding.device_set})
-    d_shard = max(float(jnp.max(jnp.abs(Xs - X))), float(jnp.max(jnp.abs(Es - E))))
+    d_shard = max(float(jnp.max(jnp.abs(Xs - X))), float(jnp.max(jnp.abs(Es - E) / E[:, :1])) * 1e2)
     spread = float(jnp.max(D[:, -1]) - jnp.min(D[:, -1]))
     print("RESULT" + json.dumps(dict(d_single=d_single, d_shard=d_shard, devices=devices, spread=spread)))
     """
@@ -55,7 +57,10 @@ def test_vmap_and_sharded_batches_equal_single_runs():
     assert r["spread"] > 1e-3  # the members really differ
     # Equal to the Newton tolerance (rtol 1e-10): batched and unbatched programs round
     # differently in the last bits, which can change a GMRES iteration count and so the
-    # converged iterate within the tolerance (measured: 6e-11 and 8e-11).
+    # converged iterate within the tolerance. d_* is the largest of |dx|, |dD| and
+    # 100 |dH| / H_0, i.e. positions and dissipation to 1e-9 absolute and H to 1e-11
+    # relative. Measured (session 3): |dx| <= 1.1e-11, |dD| <= 1.2e-11, |dH| / H_0 <=
+    # 1.8e-12 (|dH| = 1.4e-9 absolute at H_0 = 778, which the old absolute test on H failed).
     assert r["d_single"] <= 1e-9, r  # vmap of 4 == 4 single runs
     assert r["d_shard"] <= 1e-9, r  # the sharded batch == the unsharded batch
     assert r["devices"] == [0, 1], r  # and it really ran on both devices
