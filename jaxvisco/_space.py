@@ -104,15 +104,18 @@ class Discretization(eqx.Module):
     def gradient(self, u):
         """Nodal vectors (..., n_nodes, d) -> their material gradient at every quadrature
         point, zero-padded to (..., n_cells, nq, 3, 3) (no F33 = 1: for increments)."""
-        g = jnp.einsum("...eai,eqaJ->...eqiJ", self.gather(u), self.dN)
+        g = self._gradient_d(u)
         d = g.shape[-1]
         if d == 3:
             return g
         return jnp.zeros(g.shape[:-2] + (3, 3), dtype=g.dtype).at[..., :d, :d].set(g)
 
+    def _gradient_d(self, u):
+        return jnp.einsum("...eai,eqaJ->...eqiJ", self.gather(u), self.dN)
+
     def deformation_gradient(self, x):
         """Positions (..., n_nodes, d) -> F at every quadrature point (..., n_cells, nq, 3, 3)."""
-        return embed_3d(jnp.einsum("...eai,eqaJ->...eqiJ", self.gather(x), self.dN))
+        return embed_3d(self._gradient_d(x))
 
     def force(self, P):
         """Nodal forces $f_A = \\sum_{qp} w\\, P \\nabla_X N_A$ of first Piola–Kirchhoff

@@ -36,6 +36,11 @@ def make_context(scene: Scene, state: State, t0, h) -> StepContext:
                        scene.disc.deformation_gradient(state.x))
 
 
+def increments(ctx, U):
+    """Position increments $X_I - x_n$ at all k+1 time nodes (zero at the first)."""
+    return jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
+
+
 def nodal_fields(scheme, scene, ctx, U):
     """Position increments $X_I - x_n$ (k+1, n, d; zero at the first node), deformation
     gradients and internal variables at the time nodes of every spatial quadrature point
@@ -48,7 +53,7 @@ def nodal_fields(scheme, scene, ctx, U):
     operators acting on positions in time annihilate constants, so they act on the
     increments unchanged, and F = F_n + grad(increment) is translation-free.
     """
-    dX = jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
+    dX = increments(ctx, U)
     F = jnp.concatenate([ctx.F0[None], ctx.F0[None] + scene.disc.gradient(U.x)], axis=0)
     F = jnp.moveaxis(F, 0, 2)
     if U.g is None:
@@ -129,15 +134,14 @@ def external_work(scheme, scene, ctx, U):
     if scene.load is None:
         return jnp.zeros((), dtype=ctx.h.dtype)
     m, _ = scheme.matrices()
-    X = jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
-    Xd = jnp.einsum("lI,Ind->lnd", jnp.asarray(m["D"]), X)
+    Xd = jnp.einsum("lI,Ind->lnd", jnp.asarray(m["D"]), increments(ctx, U))
     ts = ctx.t0 + ctx.h * jnp.asarray(m["points"])
     fext = jax.vmap(scene.external_force)(ts)
     return jnp.sum(jnp.asarray(m["weights"])[:, None, None] * Xd * fext)
 
 
 def end_state(scheme, scene, ctx, U) -> State:
-    p_new = momenta(scheme, scene, ctx, jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0))
+    p_new = momenta(scheme, scene, ctx, increments(ctx, U))
     gamma = None if U.g is None else vec_to_sym(U.g[-1])
     return State(ctx.state.x + U.x[-1], p_new[-1], gamma)
 
@@ -145,8 +149,7 @@ def end_state(scheme, scene, ctx, U) -> State:
 def end_velocity(scheme, ctx, U):
     """$x_h'(1)/h$: a cheap velocity estimate for the next predictor."""
     m, _ = scheme.matrices()
-    X = jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
-    return jnp.einsum("I,Ind->nd", jnp.asarray(m["D_end"]), X) / ctx.h
+    return jnp.einsum("I,Ind->nd", jnp.asarray(m["D_end"]), increments(ctx, U)) / ctx.h
 
 
 def predictor(scheme, scene, ctx, velocity) -> Unknowns:

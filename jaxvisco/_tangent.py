@@ -147,9 +147,7 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns) -> Unknowns:
     dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
     if b.g is None:
         return Unknowns(dx, None)
-    dF = jnp.moveaxis(disc.deformation_gradient(dx), 0, 2)  # (e, q, k, 3, 3) ; F33 row of dx is 1
-    if d == 2:
-        dF = dF.at[..., 2, 2].set(0.0)
+    dF = jnp.moveaxis(disc.gradient(dx), 0, 2)  # (e, q, k, 3, 3), zero F33 row in 2D
     dg = z + jnp.einsum("eqab,eqb->eqa", tangent.dG_dF, dF.reshape(disc.n_cells, disc.n_qp, 9 * k))
     dg = jnp.moveaxis(dg.reshape(disc.n_cells, disc.n_qp, k, 6), 2, 0)
     return Unknowns(dx, dg)

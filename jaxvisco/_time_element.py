@@ -82,8 +82,7 @@ class AbstractTimeElement(eqx.Module):
             # assumed strains plus its share of the correction), the same force the
             # dissipation pairs with Gamma': with collocation at the Gauss points every
             # point's D_n is a sum of non-negative terms (see `point_dissipation`).
-            Y = e["dpsi_dG"] + 4.0 * e["beta"] * e["Gd"]
-            rate = jax.vmap(material.gamma_rate_from_force)(Y, Gl)
+            rate = jax.vmap(material.gamma_rate_from_force)(e["Y"], Gl)
             R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), e["Gd"] - h * rate)
             return P, sym_to_vec(R_G)
         if mg is m:
@@ -130,7 +129,9 @@ class AbstractTimeElement(eqx.Module):
             power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(w * ddot(dpsi_dG, Gd))
             den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(w * ddot(Gd, Gd))
         beta = (psi[1] - psi[0] - power) / (den + _BETA_FLOOR)
-        return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, dpsi_dG=dpsi_dG, beta=beta, w=w)
+        # The algorithmic driving force of the flow rule and the dissipation.
+        Y = None if G is None else dpsi_dG + 4.0 * beta * Gd
+        return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, Y=Y, beta=beta, w=w)
 
     def point_dissipation(self, material, F, G, h):
         """Energy dissipated at one spatial point over the step (per reference volume).
@@ -148,7 +149,7 @@ class AbstractTimeElement(eqx.Module):
         m, mg = self.matrices()
         if self.enhanced:
             e = self._enhanced_terms(material, F, G)
-            return -jnp.sum(e["w"] * ddot(e["dpsi_dG"] + 4.0 * e["beta"] * e["Gd"], e["Gd"]))
+            return -jnp.sum(e["w"] * ddot(e["Y"], e["Gd"]))
         Vg, wg = jnp.asarray(mg["V"]), jnp.asarray(mg["weights"])
         Cg = _cauchy_green(jnp.einsum("mI,Iij->mij", Vg, F))
         Gg = jnp.einsum("mI,Iij->mij", Vg, G)
