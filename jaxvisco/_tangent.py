@@ -48,10 +48,29 @@ def _held_dofs(fixed, k, n_nodes, dim):
     return (np.arange(k)[:, None] * n_nodes * dim + flat[None]).ravel()
 
 
+def body_rotation(scene, x):
+    r"""Rotation Q (d, d) that best maps the initial positions onto `x` about their
+    centroids (polar factor of $\sum_a (x_a - \bar x)(X_a - \bar X)^T$); the identity for a
+    scene with held nodes, which cannot rotate freely."""
+    d = scene.dim
+    if scene.fixed is not None:
+        return jnp.eye(d, dtype=x.dtype)
+    X = scene.x0
+    A = (x - jnp.mean(x, axis=0)).T @ (X - jnp.mean(X, axis=0))
+    if d == 2:
+        th = jnp.arctan2(A[1, 0] - A[0, 1], A[0, 0] + A[1, 1])
+        c, s = jnp.cos(th), jnp.sin(th)
+        return jnp.array([[c, -s], [s, c]])
+    u, _, vt = jnp.linalg.svd(A)
+    flip = jnp.sign(jnp.linalg.det(u @ vt))
+    return (u * jnp.array([1.0, 1.0, 1.0]).at[2].set(flip)) @ vt
+
+
 class Tangent(eqx.Module):
     token: jax.Array  # host LU of the position block (-1: none)
     h: jax.Array  # step the tangent was formed for
     stale: jax.Array  # re-form before the next use
+    rotation: jax.Array  # body rotation (d, d) where it was formed (`body_rotation`)
     Ainv: jax.Array | None  # (n_cells, nq, 6k, 6k) inverse local block
     dG_dF: jax.Array | None  # (n_cells, nq, 6k, 9k)
     dP_dG: jax.Array | None  # (n_cells, nq, nq_t*9, 6k)
@@ -60,12 +79,12 @@ class Tangent(eqx.Module):
 def empty_tangent(scheme, scene):
     k = scheme.k
     nq_t = len(scheme.matrices()[0]["points"])
+    head = (jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True), jnp.eye(scene.dim))
     if not scene.has_internal_variable:
-        return Tangent(jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True), None, None, None)
+        return Tangent(*head, None, None, None)
     ne, nq = scene.disc.n_cells, scene.disc.n_qp
     z = functools.partial(jnp.zeros, dtype=float)
-    return Tangent(jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True),
-                   z((ne, nq, 6 * k, 6 * k)), z((ne, nq, 6 * k, 9 * k)), z((ne, nq, nq_t * 9, 6 * k)))
+    return Tangent(*head, z((ne, nq, 6 * k, 6 * k)), z((ne, nq, 6 * k, 9 * k)), z((ne, nq, nq_t * 9, 6 * k)))
 
 
 def _point_tangent(scheme, material, h, F, G):
@@ -96,7 +115,7 @@ def _point_tangent(scheme, material, h, F, G):
     return dP_dF_total, Ainv, dG_dF, dP_dg
 
 
-def form_tangent(scheme, scene, ctx, U) -> Tangent:
+def form_tangent(scheme, scene, ctx, U, rotation=None) -> Tangent:
     """Condensed tangent at U: local inverses, sensitivities, and the factored position
     block $A \\otimes M / h + h\\,\\sum_l W K_l$ (exact, with Γ eliminated)."""
     m, _ = scheme.matrices()
@@ -126,15 +145,24 @@ def form_tangent(scheme, scene, ctx, U) -> Tangent:
         data = Ke.reshape(-1)
     host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
     token = lu_factor(host, data)
-    return Tangent(token, ctx.h, jnp.asarray(False), Ainv, dGdF, dPdG)
+    rotation = jnp.eye(d) if rotation is None else rotation
+    return Tangent(token, ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG)
 
 
-def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns) -> Unknowns:
+def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None) -> Unknowns:
     """Solve the linearized step equations with the condensed tangent (exact where the
-    tangent was formed)."""
+    tangent was formed).
+
+    With `rotation` (the body's rotation now, `body_rotation`) the tangent is carried
+    along the rigid rotation R since it was formed: if every position turns by R, the
+    stresses P = F S turn with it and C, Γ do not, so the Jacobian becomes T J Tᵀ with
+    T = diag(R on positions, 1 on Γ), and its inverse T J⁻¹ Tᵀ. A body that spins keeps
+    a preconditioner that fits, where the unrotated one degrades within a few steps.
+    """
     k, d, disc = scheme.k, scene.dim, scene.disc
     host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
-    bx = b.x
+    R = None if rotation is None else rotation @ tangent.rotation.T
+    bx = b.x if R is None else b.x @ R  # R^T b per node
     if b.g is not None:
         bg = jnp.moveaxis(b.g, 0, 2).reshape(disc.n_cells, disc.n_qp, 6 * k)
         z = jnp.einsum("eqab,eqb->eqa", tangent.Ainv, bg)
@@ -145,9 +173,10 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns) -> Unknowns:
             coupling = jnp.where(jnp.asarray(scene.fixed.array)[None], 0.0, coupling)
         bx = bx - coupling
     dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
+    turn = (lambda v: v) if R is None else (lambda v: v @ R.T)  # R v per node
     if b.g is None:
-        return Unknowns(dx, None)
+        return Unknowns(turn(dx), None)
     dF = jnp.moveaxis(disc.gradient(dx), 0, 2)  # (e, q, k, 3, 3), zero F33 row in 2D
     dg = z + jnp.einsum("eqab,eqb->eqa", tangent.dG_dF, dF.reshape(disc.n_cells, disc.n_qp, 9 * k))
     dg = jnp.moveaxis(dg.reshape(disc.n_cells, disc.n_qp, k, 6), 2, 0)
-    return Unknowns(dx, dg)
+    return Unknowns(turn(dx), dg)

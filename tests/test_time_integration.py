@@ -6,7 +6,11 @@ import pytest
 
 import jaxvisco as jv
 
-TIGHT = jv.NewtonKrylov(rtol=1e-11)
+# Momenta are conserved by the discrete equations; how well a run shows it follows the
+# Newton tolerance: a step accepted at a relative residual r moves the angular momentum
+# by up to ~10 r relative on the L-shape (measured 1.05e-10 in one h = 1 step at
+# rtol 1e-11, 3.3e-13 at 1e-12), so the 1e-10 checks below run at 1e-12.
+TIGHT = jv.NewtonKrylov(rtol=1e-12)
 
 
 @pytest.fixture(scope="module")
