@@ -20,10 +20,10 @@ from jaxvisco.scenes._lshape import PAPER  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 
-# Every number in the results files was measured on a CPU shared with other jobs.
-CONDITIONS = ("wall-clock times measured on a shared CPU with other jobs (other engineers' builds and tests) "
-              "running at the same time; medians of repeats where repeated; compile time = first call minus "
-              "a timed call")
+# How the numbers were taken (recorded in every results file with the load averages).
+CONDITIONS = ("one benchmark process at a time on the 2-core machine, nothing else of ours running (see the "
+              "load averages at start and end); identical runs still vary by up to ~1.4x over minutes (a shared "
+              "VM), so medians of repeats are given where repeated; compile time = first call minus a timed call")
 
 
 def lshape(dim=2, refinement=1, element=None, mass="lumped", viscous=True, lam=PAPER["lam"], mu=PAPER["mu"],

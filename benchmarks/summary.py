@@ -2,8 +2,8 @@
 
     python benchmarks/summary.py
 
-Reads work_precision.json, stability.json, scaling.json and skip_cost.json (whichever
-exist) and writes the headline numbers and the issue's targets, met or not.
+Reads work_precision.json, stability.json, scaling.json, skip_cost.json, step_cost.json
+and profile_step.json (whichever exist) and writes the headline numbers and the issue's targets, met or not.
 """
 
 import json
@@ -83,12 +83,25 @@ def main():
         out["profile_step"] = {r["scheme"]: dict(ms_per_step=r["ms_per_step"], host_lu_fraction=r["host_lu_fraction"],
                                                  newton_per_step=r["newton_per_step"],
                                                  krylov_per_step=r["krylov_per_step"]) for r in pr["rows"]}
-    cs = [v for d in out.get("compile_s", {}).values() for v in d.values() if v is not None]
-    l2d = out.get("compile_s", {}).get("work_precision (2D L-shape, first simulate call minus a timed call)", {})
-    l2d = [v for m, v in l2d.items() if not m.startswith(("scipy", "diffrax"))]
+    sc_ = _load("step_cost")
+    if sc_:
+        out["sources"]["step_cost"] = dict(quick=sc_["settings"]["quick"], date=sc_["machine"]["date"])
+        out["step_cost"] = {f"{r['scene']} {r['integrator']} {r['linear_solver']}": {
+            k: r[k] for k in ("dofs", "newton_per_step", "krylov_per_newton", "ms_per_step", "ms_per_step_min",
+                              "residual_eval_ms_min", "residuals_per_step", "compile_s")} for r in sc_["rows"]}
+        out.setdefault("compile_s", {})["step_cost (L-shape, h = 0.1, default XLA flags)"] = {
+            k: v["compile_s"] for k, v in out["step_cost"].items()}
+    # The compile target: the 2D L-shape with the default solver (step_cost), else the
+    # work-precision runs (lumped mass, every scheme).
+    l2d = {k: v for k, v in out.get("compile_s", {}).get("step_cost (L-shape, h = 0.1, default XLA flags)", {})
+           .items() if k.startswith("2D") and k.endswith("krylov")}
+    if not l2d:
+        l2d = {m: v for m, v in out.get("compile_s", {}).get(
+            "work_precision (2D L-shape, first simulate call minus a timed call)", {}).items()
+            if not m.startswith(("scipy", "diffrax"))}
+    vals = list(l2d.values())
     out["targets"]["compile time of the L-shape run < 10 s"] = dict(
-        met=bool(l2d) and max(l2d) < 10.0, range_s=[min(l2d), max(l2d)] if l2d else None,
-        note="compile times measured on a shared, heavily loaded 2-core CPU" if cs else None)
+        met=bool(vals) and max(vals) < 10.0, range_s=[min(vals), max(vals)] if vals else None, values=l2d)
     write_json("summary.json", out)
 
 

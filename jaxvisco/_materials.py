@@ -93,6 +93,13 @@ class ReeseGovindjee(eqx.Module):
         """Second Piola–Kirchhoff stress $S = 2\\,\\partial\\Psi/\\partial C$."""
         return 2.0 * sym(jax.grad(self.free_energy, argnums=0)(C, Gamma))
 
+    def stress_and_gamma_gradient(self, C, Gamma):
+        r"""$(S, \partial\Psi/\partial\Gamma)$ from one reverse pass (`stress` and
+        `energy_gradient_gamma` together: the programs that differentiate them again hold
+        one copy of the energy's derivative instead of two)."""
+        dC, dG = jax.grad(self.free_energy, argnums=(0, 1))(C, Gamma)
+        return 2.0 * sym(dC), sym(dG)
+
     def energy_gradient_gamma(self, C, Gamma):
         r"""$\partial\Psi/\partial\Gamma$ (symmetrized)."""
         return sym(jax.grad(self.free_energy, argnums=1)(C, Gamma))

@@ -12,36 +12,29 @@ import numpy as np
 _VOIGT = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
 
 
-# Cyclic shifts of an axis of length 3, result[i] = a[(i + s) % 3], as products with
-# constant permutation matrices rather than 9 indexed scalars (or slices and
-# concatenations): one dot each way under differentiation, so the programs that
-# differentiate these functions twice (residual, tangent, step derivative) stay small;
-# XLA compile time grows with the number of operations (the element-wise form doubled it).
-_PERM = {s: np.eye(3)[:, [(i + s) % 3 for i in range(3)]] for s in (1, 2)}  # (a @ P)[i] = a[(i+s)%3]
-
-
-def _shift(a, s, axis):
-    P = jnp.asarray(_PERM[s], dtype=a.dtype)
-    if axis == -1:
-        return a @ P
-    return jnp.swapaxes(jnp.swapaxes(a, -1, -2) @ P, -1, -2)
-
-
-def _cross_rows(a, b):
-    """Cross products of the last axes of `a` and `b` (..., 3)."""
-    return _shift(a, 1, -1) * _shift(b, 2, -1) - _shift(a, 2, -1) * _shift(b, 1, -1)
+# The permutation symbol: det and cofactor as contractions with it, a handful of dots
+# each way under differentiation. The programs that differentiate these functions twice
+# (residual, tangent, step derivative) stay small, and XLA's compile time grows with the
+# number of operations: 9 indexed scalars per matrix doubled it, cyclic shifts by
+# permutation matrices were 5765 jaxpr equations for the eG(1) run, these 5514.
+_EPS = np.zeros((3, 3, 3))
+for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _EPS[_i, _j, _k], _EPS[_i, _k, _j] = 1.0, -1.0
 
 
 def det3(A):
-    """Determinant of (..., 3, 3): ``A_0 . (A_1 x A_2)`` of its rows."""
-    return jnp.sum(A[..., 0, :] * _cross_rows(A[..., 1, :], A[..., 2, :]), axis=-1)
+    """Determinant of (..., 3, 3): ``A_0 . (A_1 x A_2)`` of its rows, contracted with
+    the permutation symbol."""
+    e = jnp.asarray(_EPS, dtype=A.dtype)
+    return jnp.sum(A[..., 0, :] * jnp.einsum("...j,...k,ijk->...i", A[..., 1, :], A[..., 2, :], e), axis=-1)
 
 
 def cofactor3(A):
     """Cofactor matrix of (..., 3, 3): ``cof(A) = det(A) A^{-T}``;
-    ``cof_ij = A_{i+1,j+1} A_{i+2,j+2} - A_{i+1,j+2} A_{i+2,j+1}`` (indices mod 3)."""
-    a, b = _shift(A, 1, -2), _shift(A, 2, -2)
-    return _shift(a, 1, -1) * _shift(b, 2, -1) - _shift(a, 2, -1) * _shift(b, 1, -1)
+    ``cof_ij = A_{i+1,j+1} A_{i+2,j+2} - A_{i+1,j+2} A_{i+2,j+1}`` (indices mod 3), i.e.
+    ``cof_ij = e_imn e_jpq A_mp A_nq / 2``."""
+    e = jnp.asarray(_EPS, dtype=A.dtype)
+    return 0.5 * jnp.einsum("imn,jpq,...mp,...nq->...ij", e, e, A, A)
 
 
 def inv3(A):

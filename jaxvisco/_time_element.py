@@ -123,8 +123,7 @@ class AbstractTimeElement(eqx.Module):
         else:
             Gl = jnp.einsum("lI,Iij->lij", V, G)
             Gd = jnp.einsum("lI,Iij->lij", D, G)
-            S = jax.vmap(material.stress)(Cbar, Gl)
-            dpsi_dG = jax.vmap(material.energy_gradient_gamma)(Cbar, Gl)
+            S, dpsi_dG = jax.vmap(material.stress_and_gamma_gradient)(Cbar, Gl)
             psi = jax.vmap(material.free_energy)(CI[ends], G[ends])
             power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(w * ddot(dpsi_dG, Gd))
             den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(w * ddot(Gd, Gd))
