@@ -79,6 +79,13 @@ def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_g
                        rejections=jnp.asarray(0))
 
     def frame(c, inp):
+        # A fresh tangent at every frame start. Newton's preconditioner is otherwise kept
+        # across steps, and the converged steps depend on it within the Newton tolerance
+        # (~1e-10 relative); segments are whole frames, so resetting per frame makes the
+        # trajectory (and its gradient) independent of `checkpoint_every`, and the
+        # recomputation in the backward pass repeats the forward pass exactly and never
+        # needs an old factorization.
+        c = dict(c, tan=fresh_tangent)
         started = (inp[1][0] < n_active) & (c["status"] == RUNNING)
         c, steps = jax.lax.scan(step, c, inp)
         st = c["state"]
@@ -90,9 +97,6 @@ def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_g
 
     @jax.checkpoint
     def segment(c, inp):
-        # A fresh tangent at every segment start: the recomputation in the backward pass
-        # then repeats the forward pass exactly and never needs an old factorization.
-        c = dict(c, tan=fresh_tangent)
         return jax.lax.scan(frame, c, inp)
 
     init = dict(state=state0, t=t0, v=jnp.where(use_v0, v0, scene.velocity(state0.p)), tan=fresh_tangent,

@@ -18,14 +18,18 @@ from ._quadrature import gauss_legendre
 from ._tensor import ddot, sym, sym_to_vec
 from ._time_basis import time_element_matrices
 
-# Added to the denominator of eG's algorithmic factor beta, (strain increment)^2 units.
+# Regularization of eG's algorithmic factor, (strain increment)^2 units:
+# beta = G den / (den^2 + floor^2) with den = |C'|^2 + 4|Gamma'|^2 (beta = G / den without it).
 # The energy defect G is computed as Psi(1) - Psi(0) - (power), so it carries rounding
-# noise ~1e-16 mu even where nothing moves; beta = G / (|C'|^2 + floor) amplifies that
-# into S_alg = 2 beta C' by up to 1 / (2 sqrt(floor)). With 1e-24 a rigidly translating
-# body got S_alg ~ 1e-4 mu of pure noise and Newton could not converge (the rigid-
-# translation test). The true defect is third order in the increment, so increments
-# below sqrt(floor) = 1e-5 carry a defect below ~1e-15 mu per unit volume: that is all the
-# floor can leave in the energy balance, while the noise gain drops to 5e4 (~5e-12 mu).
+# noise ~1e-16 (lam + mu) even where nothing moves; G / den amplifies that into
+# S_alg = 2 beta C' without bound as C' -> 0 (a rigidly translating body got S_alg ~ 1e-4 mu
+# of pure noise and Newton could not converge: the rigid-translation test). With the floor
+# the gain is at most 1.14 / sqrt(floor) ~ 1e5. What the regularization leaves in the
+# energy balance is G floor^2 / (den^2 + floor^2): a fraction (floor / den)^2 of the defect
+# where the increment is resolved (den = 4e-3: 6e-16), and all of it only where
+# den < floor, where G, third order in the increment, is below ~1e-15 (lam + mu) per
+# unit volume. The earlier form G / (den + floor) left a fraction floor / den: 1.3e-9 H_0
+# per step in a drawn case (lam = 7343, H_0 = 1.04), above the 1e-9 H_0 the scheme promises.
 _BETA_FLOOR = 1e-10
 
 
@@ -127,7 +131,7 @@ class AbstractTimeElement(eqx.Module):
             psi = jax.vmap(material.free_energy)(CI[ends], G[ends])
             power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(w * ddot(dpsi_dG, Gd))
             den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(w * ddot(Gd, Gd))
-        beta = (psi[1] - psi[0] - power) / (den + _BETA_FLOOR)
+        beta = (psi[1] - psi[0] - power) * den / (den**2 + _BETA_FLOOR**2)
         # The algorithmic driving force of the flow rule and the dissipation.
         Y = None if G is None else dpsi_dG + 4.0 * beta * Gd
         return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, Y=Y, beta=beta, w=w)
