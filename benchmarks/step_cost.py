@@ -90,7 +90,7 @@ def main(argv=None):
                 r = json.loads(next(line[7:] for line in out.splitlines() if line.startswith("RESULT ")))
                 rows.append(r)
                 print(json.dumps(r), flush=True)
-    write_json("step_cost", dict(machine=mach, settings=dict(
+    write_json("step_cost.json", dict(machine=mach, settings=dict(
         quick=a.quick, scheme_solver="eG(1), eG(2); NewtonKrylov defaults with linear_solver krylov | direct",
         timing="ms_per_step: median of 5 timed runs of n steps; _min: their minimum; residuals_per_step = "
                "ms_per_step_min / residual_eval_ms_min (one jitted residual evaluation, min of 20)"), rows=rows))
