@@ -465,8 +465,14 @@ def test_eg_momenta_and_energy_balance(shift, velocities, lam, mu, lam2, mu2, et
     assert np.all(dD >= -1e-13 * H[0])
     L_scale = np.sum(np.abs(p[0]))
     J_scale = np.sum(np.linalg.norm(x[0], axis=1) * np.linalg.norm(p[0], axis=1))
-    assert np.max(np.abs(L - L[0])) <= 1e-12 * L_scale
-    assert np.max(np.abs(J - J[0])) <= 1e-10 * J_scale
+    bound_L, bound_J = 1e-12 * L_scale, 1e-10 * J_scale
+    if L_scale == 0.0:
+        # A body drawn at rest has no momentum scale (a CI run drew one and failed on
+        # 1e-28 > 0); what rounding can create there is the impulse of a stress
+        # ~eps (lam + mu) on the unit-sized body.
+        bound_L = bound_J = floor
+    assert np.max(np.abs(L - L[0])) <= bound_L
+    assert np.max(np.abs(J - J[0])) <= bound_J
 
 
 # ------------------------------------------------------------------ long run
