@@ -7,8 +7,9 @@ along the body's rigid rotation; forcing terms after Eisenstat–Walker with Kel
 safeguard; a backtracking line search on the scaled residual norm. The tangent is formed
 when none fits (first step, new step size, failed step) and re-formed when the Krylov
 solver needed many iterations or the line search had to backtrack, so one factorization
-serves many iterations and steps. `linear_solver="direct"` instead forms the tangent at every iteration and takes
-the exact Newton step with it (no Krylov): the robust choice for stiff regimes.
+serves many iterations and steps. `linear_solver="direct"` instead forms the tangent at
+every iteration and takes the exact Newton step with it (no Krylov): the robust choice
+for stiff regimes.
 """
 
 import equinox as eqx
@@ -104,6 +105,12 @@ def _merit(R, sx):
     return jnp.where(jnp.isfinite(n), n, jnp.inf)
 
 
+def _scaled(R, sx):
+    """Momentum rows divided by the step's momentum scale (the evolution rows are
+    dimensionless already)."""
+    return eqx.tree_at(lambda r: r.x, R, R.x / sx)
+
+
 def _axpy(a, dU, U):
     return jax.tree_util.tree_map(lambda d, u: u + a * d, dU, U)
 
@@ -155,12 +162,11 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
 
         def newton_step(tan):
             tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation), lambda: tan)
-            unscale = lambda R: eqx.tree_at(lambda r: r.x, R, R.x * sx)  # noqa: E731
-            precond = lambda r: schur_solve(scheme, scene, ctx, tan, unscale(r), rotation)  # noqa: E731
-            rhs = jax.tree_util.tree_map(jnp.negative, eqx.tree_at(lambda r: r.x, Rt, Rt.x / sx))
+            precond = lambda r: schur_solve(scheme, scene, ctx, tan, _scaled(r, 1.0 / sx), rotation)  # noqa: E731
+            rhs = jax.tree_util.tree_map(jnp.negative, _scaled(Rt, sx))
             if direct:
                 return precond(rhs), jnp.asarray(0), tan
-            matvec = lambda v: (lambda r: eqx.tree_at(lambda q: q.x, r, r.x / sx))(jvp(v))  # noqa: E731
+            matvec = lambda v: _scaled(jvp(v), sx)  # noqa: E731
             # Eisenstat–Walker (choice 2) forcing, kept in [1e-12, 1e-2], and never
             # tighter than the nonlinear tolerance needs (after Kelley's safeguard): with
             # |r|_max <= |r|_2 <= eta |b|_2, eta = rtol / (10 |b|_2) lands the linear

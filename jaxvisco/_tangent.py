@@ -63,7 +63,7 @@ def body_rotation(scene, x):
         return jnp.array([[c, -s], [s, c]])
     u, _, vt = jnp.linalg.svd(A)
     flip = jnp.sign(jnp.linalg.det(u @ vt))
-    return (u * jnp.array([1.0, 1.0, 1.0]).at[2].set(flip)) @ vt
+    return (u * jnp.stack([1.0, 1.0, flip])) @ vt
 
 
 class Tangent(eqx.Module):
