@@ -1,10 +1,20 @@
-"""Batches of runs: `jax.vmap` on one device, split over devices with `jax.shard_map`.
+"""Batches of runs: `jax.lax.map` or `jax.vmap` on one device, split over devices with
+`jax.shard_map`.
 
-A whole `simulate` call can be vmapped (over material parameters, initial velocities,
-loads: anything that is an array in the scene): the compiled time loop then advances
-all members together, each with its own Newton iterations and step control, and the
-host factorizations run one member after the other. `sharded_map` splits the batch
-across devices, each device running `vmap` on its share; because every member's
+A whole `simulate` call can be mapped over a batch (of material parameters, initial
+velocities, loads: anything that is an array in the scene); each member keeps its own
+Newton iterations and step control. Two ways, with very different costs:
+
+- `jax.lax.map(run, batch)` (the default of `sharded_map`) runs the members one after
+  the other inside one compiled program. Every member costs what a single run costs.
+- `jax.vmap(run)(batch)` advances all members together. The solver's `lax.cond`s
+  (re-form the tangent or not, run GMRES or only a line-search trial) then depend on
+  batched values and become selects: every member pays for both branches on every
+  Newton pass. On one CPU that made a batch of 12 eG(2) runs about 8x slower than
+  `lax.map` (`benchmarks/batch_cost.py` measures it). Use it where the branches are
+  cheap or the hardware is wide (a GPU).
+
+`sharded_map` splits the batch across devices, each device mapping over its share; because every member's
 sparse factorization is a host callback, each device's program must own its callbacks,
 which `shard_map` guarantees (a plain `jit` with sharded inputs would gather them).
 
@@ -22,13 +32,18 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 
-def sharded_map(fn: Callable, *batch, devices: Optional[list] = None):
-    """`jax.vmap(fn)(*batch)` with the batch split evenly over `devices` (default: all).
+def sharded_map(fn: Callable, *batch, devices: Optional[list] = None, vectorize: bool = False):
+    """`fn` over a batch, split evenly over `devices` (default: all).
 
     **Arguments:** `fn` maps unbatched arrays (or pytrees) to a pytree of arrays;
     `batch`: arrays with a leading batch axis whose length is a multiple of the number
-    of devices. **Returns:** the stacked outputs, sharded along the batch axis.
+    of devices; `vectorize`: `False` (default) runs each device's share one member after
+    the other (`jax.lax.map`), `True` advances it together (`jax.vmap`; see the module
+    docstring for why that costs more with the Newton-Krylov solver on a CPU).
+    **Returns:** the stacked outputs, sharded along the batch axis.
     """
+    if not isinstance(vectorize, bool):
+        raise TypeError(f"vectorize must be True or False, got {vectorize!r}.")
     devices = jax.devices() if devices is None else list(devices)
     n = len(devices)
     sizes = {np.shape(x)[0] for x in jax.tree_util.tree_leaves(batch)}
@@ -39,5 +54,6 @@ def sharded_map(fn: Callable, *batch, devices: Optional[list] = None):
         raise ValueError(f"the batch size {size} is not a multiple of the number of devices {n}.")
     mesh = Mesh(np.asarray(devices), ("batch",))
     spec = PartitionSpec("batch")
-    mapped = jax.shard_map(jax.vmap(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+    per_device = jax.vmap(fn) if vectorize else (lambda *b: jax.lax.map(lambda args: fn(*args), b))
+    mapped = jax.shard_map(per_device, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
     return jax.jit(mapped)(*batch)

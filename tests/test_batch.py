@@ -1,11 +1,16 @@
 """Batched runs: vmap over a whole simulate equals separate runs; a batch split over two
-(CPU) devices with sharded_map equals the unsharded one."""
+(CPU) devices with sharded_map (lax.map or vmap on each device) equals the unsharded one."""
 
 import json
 import os
 import subprocess
 import sys
 import textwrap
+
+import jax.numpy as jnp
+import pytest
+
+import jaxvisco as jv
 
 SCRIPT = textwrap.dedent(
     """
@@ -38,9 +43,11 @@ SCRIPT = textwrap.dedent(
         # to a position difference dx by ~f_int dx (stiff: f_int ~ 300 here).
         d_single = max(d_single, float(jnp.max(jnp.abs(x - X[i]))), float(jnp.max(jnp.abs(d - D[i]))),
                        float(jnp.max(jnp.abs(e - E[i]))) / float(e[0]) * 1e2)
-    Xs, Es, Ds, ns = jv.sharded_map(run, etas, vs)
+    Xs, Es, Ds, ns = jv.sharded_map(run, etas, vs)  # lax.map on each device
     devices = sorted({d.id for d in Xs.sharding.device_set})
     d_shard = max(float(jnp.max(jnp.abs(Xs - X))), float(jnp.max(jnp.abs(Es - E) / E[:, :1])) * 1e2)
+    Xv, Ev, Dv, nv = jv.sharded_map(run, etas, vs, vectorize=True)  # vmap on each device
+    d_shard = max(d_shard, float(jnp.max(jnp.abs(Xv - X))), float(jnp.max(jnp.abs(Ev - E) / E[:, :1])) * 1e2)
     spread = float(jnp.max(D[:, -1]) - jnp.min(D[:, -1]))
     print("RESULT" + json.dumps(dict(d_single=d_single, d_shard=d_shard, devices=devices, spread=spread)))
     """
@@ -62,5 +69,10 @@ def test_vmap_and_sharded_batches_equal_single_runs():
     # relative. Measured (session 3): |dx| <= 1.1e-11, |dD| <= 1.2e-11, |dH| / H_0 <=
     # 1.8e-12 (|dH| = 1.4e-9 absolute at H_0 = 778, which the old absolute test on H failed).
     assert r["d_single"] <= 1e-9, r  # vmap of 4 == 4 single runs
-    assert r["d_shard"] <= 1e-9, r  # the sharded batch == the unsharded batch
+    assert r["d_shard"] <= 1e-9, r  # the sharded batches (lax.map, vmap) == the unsharded batch
     assert r["devices"] == [0, 1], r  # and it really ran on both devices
+
+
+def test_sharded_map_rejects_a_non_boolean_vectorize():
+    with pytest.raises(TypeError, match="vectorize must be True or False, got 'yes'"):
+        jv.sharded_map(lambda x: x, jnp.ones(2), vectorize="yes")
