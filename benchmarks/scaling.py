@@ -105,7 +105,7 @@ def plot(rows, path):
             ms0 = min(r["ms_per_step"] for r in rows if "dofs" in r and r["dofs"] == d[0])
             axes[0].loglog(d, ms0 * (d / d[0]) ** 1.2, "k:", lw=0.8, label="DOFs^1.2")
             axes[0].legend()
-    fig.suptitle("3D L-shape scaling, shared 2-core CPU (other jobs running)", fontsize=9)
+    fig.suptitle("3D L-shape scaling, 2-core CPU, one benchmark at a time", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}", flush=True)

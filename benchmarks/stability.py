@@ -211,7 +211,7 @@ def finish(data, rows, vs, sc, hs, T, out):
     data["largest_stable_h"] = largest
     md = ["# Stability on the 2D L-shape", "",
           f"t in [0, {T:g}], consistent mass, refinement 1; {data['machine']['date']}; "
-          f"{data['machine']['cpu_model']} ({data['machine']['cores']} cores, shared with other jobs).",
+          f"{data['machine']['cpu_model']} ({data['machine']['cores']} cores; {data['machine']['conditions']}).",
           table(rows, list(vs), list(sc), hs), "## Largest h stable with non-increasing energy (all variants)", ""]
     for s_name, d in largest.items():
         md.append(f"- {s_name}: {d['largest_stable_nonincreasing_h_all_variants']} (per variant: {d['per_variant']})")

@@ -235,8 +235,7 @@ def plot(data, path):
         ax.set_ylabel("error (max of rel. positions, rel. H at T)")
         ax.grid(True, which="both", lw=0.3)
         ax.legend(fontsize=7, ncol=2)
-    fig.suptitle("Work-precision, lumped mass, shared 2-core CPU (other jobs running; load varied between methods)",
-                 fontsize=9)
+    fig.suptitle("Work-precision, lumped mass, 2-core CPU, one benchmark at a time", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}", flush=True)
