@@ -107,9 +107,12 @@ def run_diffrax(ode, name, tols, T, ref, budget_s, repeats, worker_timeout_s, re
             proc.kill()
             out, _ = proc.communicate()
         timed_out = time.perf_counter() - t0 >= worker_timeout_s
+        probe = None
         for line in out.splitlines():
             if line.startswith("ROW "):
                 rows.append(json.loads(line[4:]))
+            elif line.startswith("PROBE "):
+                probe = json.loads(line[6:])
             else:
                 print(line, flush=True)
         done = {r["rtol"] for r in rows}
@@ -118,7 +121,7 @@ def run_diffrax(ode, name, tols, T, ref, budget_s, repeats, worker_timeout_s, re
                 rows.append(dict(method=f"diffrax {name}", family="peer", rtol=tol, atol=tol,
                                  status=(f"not finished: worker stopped at the {worker_timeout_s:.0f} s limit"
                                          if timed_out else "skipped (budget)"),
-                                 error=math.nan, error_x=math.nan, error_H=math.nan, wall_s=math.nan))
+                                 error=math.nan, error_x=math.nan, error_H=math.nan, wall_s=math.nan, probe=probe))
                 if timed_out:
                     print(f"  diffrax {name} tol={tol:g}: stopped at the {worker_timeout_s:.0f} s limit", flush=True)
                     timed_out = False  # the tighter ones were never started
@@ -135,18 +138,28 @@ def diffrax_worker(name, refinement, T, tols, budget_s, repeats, ref_path, max_s
     term = dfx.ODETerm(ode.vector_field)
 
     @jax.jit
-    def solve(y0, tol):
-        s = dfx.diffeqsolve(term, solver, 0.0, T, 1e-3, y0, stepsize_controller=dfx.PIDController(rtol=tol, atol=tol),
+    def solve(y0, tol, t1):
+        s = dfx.diffeqsolve(term, solver, 0.0, t1, 1e-3, y0, stepsize_controller=dfx.PIDController(rtol=tol, atol=tol),
                             saveat=dfx.SaveAt(t1=True), max_steps=max_steps, throw=False)
         return s.ys[-1], s.stats["num_steps"], s.stats["num_rejected_steps"], s.result == dfx.RESULTS.successful
 
     y0 = jnp.asarray(ode.y0)
     t0 = time.perf_counter()
-    compiled = solve.lower(y0, tols[0]).compile()
+    compiled = solve.lower(y0, tols[0], T).compile()
     compile_s = time.perf_counter() - t0
     print(f"  diffrax {name}: compiled in {compile_s:.1f}s", flush=True)
+    # A probe over the first 1 % of the interval at the loosest tolerance: the cost of one
+    # step, recorded even when the full runs do not finish within the worker's time limit.
+    t0 = time.perf_counter()
+    _, steps, rejected, _ = jax.block_until_ready(compiled(y0, tols[0], T / 100))
+    probe_s = time.perf_counter() - t0
+    probe = dict(t1=T / 100, rtol=tols[0], wall_s=probe_s, steps=int(steps), rejected=int(rejected),
+                 s_per_attempted_step=probe_s / max(int(steps) + int(rejected), 1))
+    print(f"  diffrax {name} probe to t={T / 100:g} at tol {tols[0]:g}: {probe_s:.1f}s, {int(steps)} steps "
+          f"+ {int(rejected)} rejected", flush=True)
+    print("PROBE " + json.dumps(probe), flush=True)
     for tol in tols:
-        out, first, wall, times = timed(lambda: jax.block_until_ready(compiled(y0, tol)), repeats=repeats,
+        out, first, wall, times = timed(lambda: jax.block_until_ready(compiled(y0, tol, T)), repeats=repeats,
                                         budget_s=budget_s / 4)
         y, steps, rejected, ok = out
         ok = bool(ok)
