@@ -1,9 +1,11 @@
 """Where a jaxvisco step spends its time: host sparse LU (factor, solve) vs the rest.
 
     python benchmarks/profile_step.py [--quick]
+    python benchmarks/profile_step.py --dim 3 --refinement 4 --element hex8 --mass consistent \
+        --h 0.1 --steps 5 --schemes "eG(1)" --out profile_step_3d
 
 eG(1) and eG(2) on the 2D L-shape (refinement 1, lumped mass as in work_precision.py),
-h = 0.05, after compilation. The sparse factorizations and solves run on the host through
+h = 0.05, after compilation (other scenes by the options). The sparse factorizations and solves run on the host through
 `jax.pure_callback` (`HostLU.factor`, `HostLU.solve`), called synchronously from XLA's
 threads (which cProfile does not see); this script wraps those two methods with timers
 before anything is traced, so their share of the wall time is measured. The rest is the
@@ -45,12 +47,26 @@ for _name in ("factor", "solve"):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--dim", type=int, default=2)
+    p.add_argument("--refinement", type=int, default=1)
+    p.add_argument("--element", default=None, help="hex8 or tet4 (3D); the mesh's default if omitted")
+    p.add_argument("--mass", default="lumped", choices=("lumped", "consistent"))
+    p.add_argument("--steps", type=int, default=None)
+    p.add_argument("--h", type=float, default=0.05)
+    p.add_argument("--schemes", default="eG(1),eG(2)")
+    p.add_argument("--out", default="profile_step")
     a = p.parse_args(argv)
-    n, h = (40 if a.quick else 200), 0.05
-    scene = lshape(2, 1, mass="lumped")
+    n, h = a.steps or (40 if a.quick else 200), a.h
+    scene = lshape(a.dim, a.refinement, element=a.element, mass=a.mass)
     rows = []
-    data = dict(machine=machine(), settings=dict(scene="2D L-shape r1, lumped mass", h=h, steps=n), rows=rows)
-    for name, scheme in (("eG(1)", jv.eG(1)), ("eG(2)", jv.eG(2))):
+    data = dict(machine=machine(), settings=dict(
+        scene=f"{a.dim}D L-shape r{a.refinement}{' ' + a.element if a.element else ''}, {a.mass} mass",
+        dofs=int(scene.mesh.n_nodes * a.dim), h=h, steps=n), rows=rows)
+    known = {"eG(1)": jv.eG(1), "eG(2)": jv.eG(2), "eG(3)": jv.eG(3), "cG(1)": jv.cG(1), "cG(2)": jv.cG(2)}
+    for name in a.schemes.split(","):
+        if name not in known:
+            raise SystemExit(f"unknown scheme {name!r}; accepted: {sorted(known)}")
+        scheme = known[name]
         def go():
             return jv.simulate(scene, scheme, t_end=n * h, dt=h, save_every=n)
 
@@ -66,7 +82,7 @@ def main(argv=None):
                    krylov_per_step=float(np.mean(np.asarray(sol.krylov_iterations))))
         rows.append(row)
         print(row, flush=True)
-        write_json("profile_step.json", data)
+        write_json(f"{a.out}.json", data)
 
 
 if __name__ == "__main__":
