@@ -11,8 +11,9 @@ Newton iterations and step control. Two ways, with very different costs:
   (re-form the tangent or not, run GMRES or only a line-search trial) then depend on
   batched values and become selects: every member pays for both branches on every
   Newton pass. On a 2-core CPU, 8 eG(1) runs of 20 steps took 2.8x as long as with
-  `lax.map` (`benchmarks/batch_cost.py`), and the 12 eG(2) runs of a finite-difference
-  check about 8x. Use it where the branches are cheap or the hardware is wide (a GPU).
+  `lax.map` (`benchmarks/batch_cost.py`); a finite-difference test over 12 eG(2) runs
+  went from 565 s to 221 s when it switched to `lax.map`. Use vmap where the branches
+  are cheap or the hardware is wide (a GPU).
 
 `sharded_map` splits the batch across devices, each device mapping over its share; because every member's
 sparse factorization is a host callback, each device's program must own its callbacks,

@@ -57,8 +57,8 @@ def _values(scheme):
     """The loss at a batch of parameter points: one compiled forward program runs the
     finite-difference points one after the other (`lax.map`). Under `jax.vmap` the
     solver's `lax.cond`s would become selects, so every member would form the tangent and
-    run GMRES on every pass: the 12 eG(2) points took 477-565 s in CI that way, against
-    58 s with `lax.map` (session 5, on a machine shared with a benchmark)."""
+    run GMRES on every pass: the eG(2) test took 477-565 s in CI that way and 221 s with
+    `lax.map` (a CI run that shared the machine with a benchmark)."""
     loss = _loss_fn(scheme)
     return eqx.filter_jit(lambda points: jax.lax.map(loss, points))
 
