@@ -26,6 +26,12 @@ CONDITIONS = ("one benchmark process at a time on the 2-core machine, nothing el
               "VM), so medians of repeats are given where repeated; compile time = first call minus a timed call")
 
 
+def schemes():
+    """The integrators the benchmarks compare, by name."""
+    return {"cG(1)": jv.cG(1), "cG(2)": jv.cG(2), "cG(3)": jv.cG(3), "eG(1)": jv.eG(1), "eG(2)": jv.eG(2),
+            "eG(3)": jv.eG(3), "Newmark": jv.Newmark(), "Midpoint": jv.Midpoint()}
+
+
 def lshape(dim=2, refinement=1, element=None, mass="lumped", viscous=True, lam=PAPER["lam"], mu=PAPER["mu"],
            eta_dev=PAPER["eta_dev"], eta_vol=PAPER["eta_vol"]):
     """The paper's L-shape (as `jaxvisco.scenes.lshape`) with a choice of mass matrix."""

@@ -5,8 +5,8 @@
         --h 0.1 --steps 5 --schemes "eG(1)" --out profile_step_3d
 
 eG(1) and eG(2) on the 2D L-shape (refinement 1, lumped mass as in work_precision.py),
-h = 0.05, after compilation (other scenes by the options). The sparse factorizations and solves run on the host through
-`jax.pure_callback` (`HostLU.factor`, `HostLU.solve`), called synchronously from XLA's
+h = 0.05, after compilation (other scenes by the options). The sparse factorizations and
+solves run on the host through `jax.pure_callback` (`HostLU.factor`, `HostLU.solve`), called synchronously from XLA's
 threads (which cProfile does not see); this script wraps those two methods with timers
 before anything is traced, so their share of the wall time is measured. The rest is the
 compiled XLA program (residuals, JVPs, GMRES, tangent assembly) and callback overhead.
@@ -17,7 +17,7 @@ import argparse
 import collections
 import time
 
-from common import jv, lshape, machine, write_json  # noqa: I001
+from common import jv, lshape, machine, schemes, write_json  # noqa: I001
 
 import numpy as np  # noqa: E402
 
@@ -62,7 +62,7 @@ def main(argv=None):
     data = dict(machine=machine(), settings=dict(
         scene=f"{a.dim}D L-shape r{a.refinement}{' ' + a.element if a.element else ''}, {a.mass} mass",
         dofs=int(scene.mesh.n_nodes * a.dim), h=h, steps=n), rows=rows)
-    known = {"eG(1)": jv.eG(1), "eG(2)": jv.eG(2), "eG(3)": jv.eG(3), "cG(1)": jv.cG(1), "cG(2)": jv.cG(2)}
+    known = schemes()
     for name in a.schemes.split(","):
         if name not in known:
             raise SystemExit(f"unknown scheme {name!r}; accepted: {sorted(known)}")

@@ -25,6 +25,7 @@ import tempfile
 import time
 
 from common import RESULTS, jv, lshape, machine, rel, timed, write_json  # noqa: I001
+from common import schemes as all_schemes  # noqa: I001
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -32,11 +33,6 @@ import numpy as np  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 TARGET = 1e-6
-
-
-def _schemes():
-    return {"cG(1)": jv.cG(1), "cG(2)": jv.cG(2), "cG(3)": jv.cG(3), "eG(1)": jv.eG(1), "eG(2)": jv.eG(2),
-            "eG(3)": jv.eG(3), "Newmark": jv.Newmark(), "Midpoint": jv.Midpoint()}
 
 
 def _errors(x, H, ref):
@@ -288,7 +284,7 @@ def main(argv=None):
     budget = a.budget if a.budget is not None else (8.0 if quick else 90.0)
     repeats = 2 if quick else 3
     worker_timeout = 70.0 if quick else 4 * budget  # wall-clock limit of one diffrax solver's subprocess
-    schemes = _schemes()
+    schemes = all_schemes()
     order2 = [0.1, 0.05, 0.025, 0.0125, 0.00625]
     order4 = [0.2, 0.1, 0.05, 0.025, 0.0125]
     order6 = [0.4, 0.2, 0.1, 0.05, 0.025]
@@ -330,7 +326,7 @@ def main(argv=None):
         ref_wall = None
         if a.reference == "eG":
             t0 = time.perf_counter()
-            sol = jv.simulate(scene, _schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref,
+            sol = jv.simulate(scene, all_schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref,
                               max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
             ref_wall = time.perf_counter() - t0
             ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]))
