@@ -172,8 +172,13 @@ def diffrax_worker(name, refinement, T, tols, budget_s, repeats, ref_path, max_s
 
 
 def interpolate_at(rows, target=TARGET):
-    """Wall time at `target` error, log–log interpolated along the runs in order of cost."""
-    pts = sorted((r["wall_s"], r["error"]) for r in rows if np.isfinite(r.get("error", np.nan)) and r["error"] > 0)
+    """Wall time at `target` error, log–log interpolated between consecutive runs in the
+    order of their setting (decreasing step or tolerance), as the curves are drawn: at the
+    first pair whose errors bracket the target. (Ordering by the measured wall time instead
+    let a slower run at a looser tolerance bracket the target: scipy Radau on r2, where tol
+    1e-3 took longer than tol 1e-4.)"""
+    ok = [r for r in rows if np.isfinite(r.get("error", np.nan)) and r["error"] > 0]
+    pts = [(r["wall_s"], r["error"]) for r in sorted(ok, key=lambda r: -r.get("h", r.get("rtol", 0.0)))]
     for (w0, e0), (w1, e1) in zip(pts, pts[1:]):
         if (e0 - target) * (e1 - target) <= 0 and e0 != e1:
             s = (math.log(target) - math.log(e0)) / (math.log(e1) - math.log(e0))
@@ -191,7 +196,9 @@ def compare(runs):
 
 
 def merge(names, out):
-    """Merge runs of the same scenes measured in separate processes (same settings)."""
+    """Merge runs of the same scenes measured in separate processes (same settings). A
+    scene new to the first file is added; a method measured in a later file replaces all
+    of that method's rows in the earlier ones (the merge notes which)."""
     datas = [json.loads((RESULTS / f"{n}.json").read_text()) for n in names]
     data = datas[0]
     data["merged_from"] = {n: dict(machine=d["machine"], settings=d["settings"],
@@ -202,13 +209,14 @@ def merge(names, out):
             if key not in data["scenes"]:
                 data["scenes"][key] = sc
                 continue
-            # Methods measured in the other process replace the unfinished rows of this one.
+            # A method measured in a later file replaces every row of it in the earlier ones
+            # (a re-measurement, or runs that did not finish there).
             measured = {r["method"] for r in sc["runs"] if np.isfinite(r.get("error", np.nan))}
-            kept = [r for r in data["scenes"][key]["runs"]
-                    if r["method"] not in measured or np.isfinite(r.get("error", np.nan))]
+            kept = [r for r in data["scenes"][key]["runs"] if r["method"] not in measured]
             if len(kept) < len(data["scenes"][key]["runs"]):
                 data["scenes"][key].setdefault("notes", []).append(
-                    f"unfinished rows of {sorted(measured)} replaced by the runs of a separate process")
+                    f"rows of {sorted(measured & {r['method'] for r in data['scenes'][key]['runs']})} replaced by "
+                    f"the runs of a separate process ({names[datas.index(d)]})")
             data["scenes"][key]["runs"] = kept + sc["runs"]
             data["scenes"][key].setdefault("other_references", []).append(sc["reference"])
     for key, sc in data["scenes"].items():
@@ -261,7 +269,8 @@ def main(argv=None):
     p.add_argument("--reference", choices=("eG", "radau"), default="eG",
                    help="radau: use the Radau rtol-1e-12 solution itself as the reference (no eG run)")
     p.add_argument("--merge", default=None,
-                   help="comma list of results names to merge into --out (runs split over processes); no runs")
+                   help="comma list of results names to merge into --out (runs split over processes; a method "
+                        "measured in a later file replaces its rows in earlier ones); no runs")
     p.add_argument("--replot", action="store_true", help="only redraw the PNG from the JSON")
     p.add_argument("--diffrax-worker", default=None, help=argparse.SUPPRESS)
     p.add_argument("--tols", default=None, help=argparse.SUPPRESS)
