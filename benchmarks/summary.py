@@ -2,8 +2,8 @@
 
     python benchmarks/summary.py
 
-Reads work_precision.json, stability.json, scaling.json, skip_cost.json, step_cost.json
-and profile_step.json (whichever exist) and writes the headline numbers and the issue's targets, met or not.
+Reads work_precision.json, stability.json, scaling.json, skip_cost.json, step_cost.json,
+profile_step.json and compile_cost.json (whichever exist) and writes the headline numbers and the issue's targets, met or not.
 """
 
 import json
@@ -103,6 +103,11 @@ def main():
                               "residual_eval_ms_min", "residuals_per_step", "compile_s")} for r in sc_["rows"]}
         out.setdefault("compile_s", {})["step_cost (L-shape, h = 0.1, default XLA flags)"] = {
             k: v["compile_s"] for k, v in out["step_cost"].items()}
+    cc = _load("compile_cost")
+    if cc:
+        out["sources"]["compile_cost"] = dict(date=cc["machine"]["date"], settings=cc["settings"])
+        out["compile_breakdown"] = {f"{r['scheme']} {r['part']}": dict(
+            compile_s=r["compile_s"], lower_s=r["lower_s"], hlo_instructions=r["hlo_instructions"]) for r in cc["rows"]}
     # The compile target: the 2D L-shape with the default solver (step_cost), else the
     # work-precision runs (lumped mass, every scheme).
     l2d = {k: v for k, v in out.get("compile_s", {}).get("step_cost (L-shape, h = 0.1, default XLA flags)", {})

@@ -1,0 +1,133 @@
+"""Where the compile time of a run goes: each part of a step compiled on its own.
+
+    python benchmarks/compile_cost.py [--quick] [--dim 2] [--refinement 1] [--schemes eG(1),eG(2)]
+
+For the L-shape and each scheme, the parts of the compiled time loop are lowered and
+compiled as programs of their own: the step residual, its linearization with one JVP (`_step.linearize`),
+the condensed tangent (`form_tangent`), the block solve (`schur_solve`), one GMRES solve,
+one Newton solve of a step (`solve_step`: all of the above), the step's outcome
+(end state, dissipation, external work), the diagnostics of a saved frame, and the whole
+`simulate` loop. For each: trace + lowering seconds, XLA compile seconds, and the number
+of HLO instructions after XLA's optimization. The parts overlap (a Newton solve contains
+the residual, the tangent, ...), so they do not add up to the whole; they show which
+piece of the program XLA spends its time on. Every case runs in a fresh process (XLA
+caches nothing across processes here). Writes benchmarks/results/compile_cost.json.
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+
+from common import jv, lshape, machine, schemes, write_json  # noqa: I001
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jaxvisco._krylov import gmres  # noqa: E402
+from jaxvisco._newton import solve_step  # noqa: E402
+from jaxvisco._simulate import _run  # noqa: E402
+from jaxvisco._step import linearize, make_context, predictor, residual, step_outcome  # noqa: E402
+from jaxvisco._tangent import empty_tangent, form_tangent, schur_solve  # noqa: E402
+
+PARTS = ("residual", "linearize_jvp", "form_tangent", "schur_solve", "gmres", "solve_step", "step_outcome",
+         "diagnostics", "simulate")
+
+
+def _hlo_instructions(compiled):
+    return sum(1 for line in compiled.as_text().splitlines() if " = " in line and not line.lstrip().startswith("//"))
+
+
+def part(name, dim, refinement, scheme_name, mass):
+    scene = lshape(dim, refinement, mass=mass)
+    scheme = schemes()[scheme_name]
+    solver = jv.NewtonKrylov()
+    state = scene.initial_state()
+    ctx = make_context(scene, state, 0.0, 0.1)
+    U = predictor(scheme, scene, ctx, scene.v0)
+    tan = empty_tangent(scheme, scene)
+    res = lambda c, u: residual(scheme, scene, c, u)  # noqa: E731
+
+    if name == "residual":
+        fn, args = (lambda c, u: res(c, u)), (ctx, U)
+    elif name == "linearize_jvp":
+        fn, args = (lambda c, u, v: linearize(scheme, scene, c, u).jvp(scheme, scene, c, v)), (ctx, U, U)
+    elif name == "form_tangent":  # with the linearization it is formed from
+        fn, args = (lambda c, u: form_tangent(scheme, scene, c, linearize(scheme, scene, c, u))), (ctx, U)
+    elif name == "schur_solve":
+        fn, args = (lambda c, t, b: schur_solve(scheme, scene, c, t, b, jnp.eye(scene.dim))), (ctx, tan, U)
+    elif name == "gmres":
+        def fn(c, u, t):
+            lin = linearize(scheme, scene, c, u)
+            precond = lambda r: schur_solve(scheme, scene, c, t, r, jnp.eye(scene.dim))  # noqa: E731
+            return gmres(lambda v: lin.jvp(scheme, scene, c, v), precond, u, 1e-6, solver.krylov_max_steps)[0]
+        args = (ctx, U, tan)
+    elif name == "solve_step":
+        fn, args = (lambda c, u, t: solve_step(solver, scheme, scene, c, u, t)), (ctx, U, tan)
+    elif name == "step_outcome":
+        def fn(c, u, t):
+            r = jv._newton.NewtonResult(u, jnp.asarray(True), jnp.asarray(1), jnp.asarray(1), jnp.asarray(0.0), t)
+            return step_outcome(scheme, scene, c, r)
+        args = (ctx, U, tan)
+    elif name == "diagnostics":
+        fn, args = (lambda s: scene.diagnostics(s)), (state,)
+    elif name == "simulate":
+        hs = jnp.full(10, 0.1)
+    else:
+        raise ValueError(f"unknown part {name!r}; known: {PARTS}")
+
+    t0 = time.perf_counter()
+    if name == "simulate":
+        lowered = _run.lower(scene, scheme, solver, state, jnp.asarray(0.0), hs, jnp.asarray(10), 10, False, None, 6,
+                             jnp.zeros_like(state.p), jnp.asarray(False))
+    else:
+        lowered = eqx.filter_jit(fn).lower(*args)
+    lower_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    compiled = lowered.compile()
+    compiled = getattr(compiled, "compiled", compiled)  # equinox wraps jax.stages.Compiled
+    compile_s = time.perf_counter() - t0
+    return dict(part=name, lower_s=lower_s, compile_s=compile_s, hlo_instructions=_hlo_instructions(compiled))
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="eG(1) only, the whole loop and the Newton solve")
+    p.add_argument("--dim", type=int, default=2)
+    p.add_argument("--refinement", type=int, default=1)
+    p.add_argument("--mass", default="consistent")
+    p.add_argument("--schemes", default=None)
+    p.add_argument("--parts", default=None)
+    p.add_argument("--out", default="compile_cost")
+    p.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.worker:
+        scheme_name, name = a.worker.split("|")
+        print("ROW " + json.dumps(part(name, a.dim, a.refinement, scheme_name, a.mass)), flush=True)
+        return
+    names = a.schemes.split(",") if a.schemes else (["eG(1)"] if a.quick else ["eG(1)", "eG(2)", "cG(1)"])
+    parts = a.parts.split(",") if a.parts else (["solve_step", "simulate"] if a.quick else list(PARTS))
+    unknown = [x for x in parts if x not in PARTS] + [x for x in names if x not in schemes()]
+    if unknown:
+        raise SystemExit(f"unknown part or scheme {unknown}; parts: {PARTS}; schemes: {tuple(schemes())}")
+    data = dict(machine=machine(), settings=dict(dim=a.dim, refinement=a.refinement, mass=a.mass,
+                                                 solver="NewtonKrylov() defaults", xla_flags="default"), rows=[])
+    for s in names:
+        for name in parts:
+            cmd = [sys.executable, __file__, "--worker", f"{s}|{name}", "--dim", str(a.dim),
+                   "--refinement", str(a.refinement), "--mass", a.mass]
+            out = subprocess.run(cmd, capture_output=True, text=True)
+            rows = [json.loads(line[4:]) for line in out.stdout.splitlines() if line.startswith("ROW ")]
+            if not rows:
+                raise SystemExit(f"{s} {name} failed:\n{out.stderr[-3000:]}")
+            row = dict(scheme=s, **rows[0])
+            data["rows"].append(row)
+            print(f"{s:6s} {name:14s} lower {row['lower_s']:6.2f}s  compile {row['compile_s']:6.2f}s  "
+                  f"HLO {row['hlo_instructions']:6d}", flush=True)
+    write_json(f"{a.out}.json", data)
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=3)
+    main()
