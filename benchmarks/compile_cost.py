@@ -3,7 +3,7 @@
     python benchmarks/compile_cost.py [--quick] [--dim 2] [--refinement 1] [--schemes eG(1),eG(2)]
 
 For the L-shape and each scheme, the parts of the compiled time loop are lowered and
-compiled as programs of their own: the step residual, its linearization with one JVP (`_step.linearize`),
+compiled as programs of their own: the step residual, its linearization with one JVP,
 the condensed tangent (`form_tangent`), the block solve (`schur_solve`), one GMRES solve,
 one Newton solve of a step (`solve_step`: all of the above), the step's outcome
 (end state, dissipation, external work), the diagnostics of a saved frame, and the whole
@@ -23,12 +23,13 @@ import time
 from common import jv, lshape, machine, schemes, write_json  # noqa: I001
 
 import equinox as eqx  # noqa: E402
+import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jaxvisco._krylov import gmres  # noqa: E402
 from jaxvisco._newton import solve_step  # noqa: E402
 from jaxvisco._simulate import _run  # noqa: E402
-from jaxvisco._step import linearize, make_context, predictor, residual, step_outcome  # noqa: E402
+from jaxvisco._step import make_context, predictor, residual, step_outcome  # noqa: E402
 from jaxvisco._tangent import empty_tangent, form_tangent, schur_solve  # noqa: E402
 
 PARTS = ("residual", "linearize_jvp", "form_tangent", "schur_solve", "gmres", "solve_step", "step_outcome",
@@ -52,16 +53,16 @@ def part(name, dim, refinement, scheme_name, mass):
     if name == "residual":
         fn, args = (lambda c, u: res(c, u)), (ctx, U)
     elif name == "linearize_jvp":
-        fn, args = (lambda c, u, v: linearize(scheme, scene, c, u).jvp(scheme, scene, c, v)), (ctx, U, U)
-    elif name == "form_tangent":  # with the linearization it is formed from
-        fn, args = (lambda c, u: form_tangent(scheme, scene, c, linearize(scheme, scene, c, u))), (ctx, U)
+        fn, args = (lambda c, u, v: jax.linearize(lambda w: res(c, w), u)[1](v)), (ctx, U, U)
+    elif name == "form_tangent":
+        fn, args = (lambda c, u: form_tangent(scheme, scene, c, u)), (ctx, U)
     elif name == "schur_solve":
         fn, args = (lambda c, t, b: schur_solve(scheme, scene, c, t, b, jnp.eye(scene.dim))), (ctx, tan, U)
     elif name == "gmres":
         def fn(c, u, t):
-            lin = linearize(scheme, scene, c, u)
+            _, jvp = jax.linearize(lambda w: res(c, w), u)
             precond = lambda r: schur_solve(scheme, scene, c, t, r, jnp.eye(scene.dim))  # noqa: E731
-            return gmres(lambda v: lin.jvp(scheme, scene, c, v), precond, u, 1e-6, solver.krylov_max_steps)[0]
+            return gmres(jvp, precond, u, 1e-6, solver.krylov_max_steps)[0]
         args = (ctx, U, tan)
     elif name == "solve_step":
         fn, args = (lambda c, u, t: solve_step(solver, scheme, scene, c, u, t)), (ctx, U, tan)

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from ._newton import _scale, solve_step
-from ._step import linearize, residual
+from ._step import residual
 from ._tangent import form_tangent, schur_solve
 
 _SWEEPS = 2
@@ -62,10 +62,9 @@ def _solve_jvp(primals, tangents, *, solver, scheme):
     def unscale(R):
         return eqx.tree_at(lambda r: r.x, R, R.x * sx)
 
-    lin = linearize(scheme, scene, ctx, U)
-    tan = form_tangent(scheme, scene, ctx, lin)
-    dU = refined_solve(lambda v: scaled(lin.jvp(scheme, scene, ctx, v)),
-                       lambda r: schur_solve(scheme, scene, ctx, tan, unscale(r)),
+    _, jvp = jax.linearize(lambda u: scaled(residual(scheme, scene, ctx, u)), U)
+    tan = form_tangent(scheme, scene, ctx, U)
+    dU = refined_solve(jvp, lambda r: schur_solve(scheme, scene, ctx, tan, unscale(r)),
                        scaled(jax.tree_util.tree_map(jnp.negative, dR)))
     t_out = jax.tree_util.tree_map(lambda _: None, out)
     t_out = eqx.tree_at(lambda o: o.U, t_out, dU, is_leaf=lambda x: x is None)

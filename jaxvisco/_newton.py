@@ -1,9 +1,8 @@
 """The jitted Newton–Krylov loop that solves one time element.
 
-Per iteration: one linearization of the step residual (`_step.linearize`: its primal is
-the residual that tests convergence and the line search; its linear point map serves
-both the Krylov solver's JVP and, when one is formed, the condensed tangent); GMRES
-(`_krylov.gmres`) on its JVP, preconditioned by the exact block solve with a condensed tangent (`_tangent`), carried
+Per iteration: one `jax.linearize` of the step residual (its primal is the residual that
+tests convergence and the line search); GMRES (`_krylov.gmres`) on its JVP,
+preconditioned by the exact block solve with a condensed tangent (`_tangent`), carried
 along the body's rigid rotation; forcing terms after Eisenstat–Walker with Kelley's
 safeguard; a backtracking line search on the scaled residual norm. The tangent is formed
 when none fits (first step, new step size, failed step) and re-formed when the Krylov
@@ -19,7 +18,7 @@ import jax.numpy as jnp
 import lineax as lx
 
 from ._krylov import gmres
-from ._step import linearize, residual
+from ._step import residual
 from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
 
 _LINEAR_SOLVERS = ("krylov", "direct")
@@ -132,7 +131,7 @@ def _lineax_gmres(matvec, precond, rhs, eta, max_steps):
 def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -> NewtonResult:
     """Newton's method on one time element.
 
-    The loop visits trial points: each is evaluated once, by the linearization whose
+    The loop visits trial points: each is evaluated once, by the `jax.linearize` whose
     JVP the next Krylov solve needs (the primal of a linearization costs what a residual
     does), so a full Newton step costs one linearization plus its Krylov vectors; the
     line search's backtracking trials are further passes that skip the solve.
@@ -148,8 +147,10 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     def body(c):
         first = c["it"] < 0
         Ut = _axpy(c["a"], c["dU"], c["U"])
-        lin = linearize(scheme, scene, ctx, Ut)
-        Rt = lin.R
+        if direct:
+            Rt, jvp = res(Ut), None
+        else:
+            Rt, jvp = jax.linearize(res, Ut)
         sx = jnp.where(first, _scale(ctx, scene, Rt), c["sx"])
         norm_t = _norm(Rt, sx)
         decrease = _merit(Rt, sx) <= (1.0 - 1e-4 * c["a"]) * _merit(c["R"], sx)
@@ -160,12 +161,12 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         refresh = c["refresh"] | (c["n_ls"] > 0)  # a step that needed backtracking
 
         def newton_step(tan):
-            tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, lin, rotation), lambda: tan)
+            tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation), lambda: tan)
             precond = lambda r: schur_solve(scheme, scene, ctx, tan, _scaled(r, 1.0 / sx), rotation)  # noqa: E731
             rhs = jax.tree_util.tree_map(jnp.negative, _scaled(Rt, sx))
             if direct:
                 return precond(rhs), jnp.asarray(0), tan
-            matvec = lambda v: _scaled(lin.jvp(scheme, scene, ctx, v), sx)  # noqa: E731
+            matvec = lambda v: _scaled(jvp(v), sx)  # noqa: E731
             # Eisenstat–Walker (choice 2) forcing, kept in [1e-12, 1e-2], and never
             # tighter than the nonlinear tolerance needs (after Kelley's safeguard): with
             # |r|_max <= |r|_2 <= eta |b|_2, eta = rtol / (10 |b|_2) lands the linear

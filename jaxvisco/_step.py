@@ -94,17 +94,13 @@ def external_term(scheme, scene, ctx):
     return ctx.h * jnp.einsum("Jl,lnd->Jnd", jnp.asarray(m["W"]), fext)
 
 
-def point_outputs(scheme, scene, ctx, F, G):
-    """The scheme's point kernel over every spatial quadrature point: stresses P
-    (n_cells, nq, nq_t, 3, 3) and evolution residuals (n_cells, nq, k, 6) or None."""
-    return _over_points(lambda f, g: scheme.point_kernel(scene.material, f, g, ctx.h), F, G)
-
-
-def assemble(scheme, scene: Scene, ctx: StepContext, U: Unknowns, P, R_G) -> Unknowns:
-    """The step residual from the unknowns and the point kernel's outputs (affine in
-    all three): momentum equations (k, n, d), evolution law (k, n_cells, nq, 6)."""
+def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
+    """Weak residual of the time element: momentum equations (k, n, d) in units of
+    momentum, evolution law (k, n_cells, nq, 6) dimensionless."""
     m, _ = scheme.matrices()
-    MX = scene.disc.mass_matvec(increments(ctx, U), scene.density)
+    X, F, G = nodal_fields(scheme, scene, ctx, U)
+    P, R_G = _over_points(lambda f, g: scheme.point_kernel(scene.material, f, g, ctx.h), F, G)
+    MX = scene.disc.mass_matvec(X, scene.density)
     R_x = (jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["A"]), MX) / ctx.h
            + jnp.asarray(m["b"])[:, None, None] * ctx.state.p[None]
            + force_term(scheme, scene, ctx, P))
@@ -117,47 +113,6 @@ def assemble(scheme, scene: Scene, ctx: StepContext, U: Unknowns, P, R_G) -> Unk
         mask = jnp.asarray(scene.fixed.array)[None]
         R_x = jnp.where(mask, (ctx.state.x[None] + U.x - scene.x0[None]) * constraint_scale(scene, ctx.h), R_x)
     return Unknowns(R_x, None if R_G is None else jnp.moveaxis(R_G, 2, 0))
-
-
-def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
-    """Weak residual of the time element: momentum equations (k, n, d) in units of
-    momentum, evolution law (k, n_cells, nq, 6) dimensionless."""
-    _, F, G = nodal_fields(scheme, scene, ctx, U)
-    P, R_G = point_outputs(scheme, scene, ctx, F, G)
-    return assemble(scheme, scene, ctx, U, P, R_G)
-
-
-class Linearization:
-    """The step residual at U with its linearization, split where the nonlinearity
-    lives: U -> (F, G) at the points is affine, the point kernel is nonlinear and local,
-    the assembly is affine. `point_jvp` (the linearized point kernel) serves both the
-    Krylov solver's JVP and the condensed tangent (`_tangent.form_tangent`), so the
-    compiled program holds one linearization of the material law, not two. A plain
-    object (closed over by the solver's branches, never passed through them)."""
-
-    def __init__(self, R: Unknowns, U: Unknowns, P, R_G, point_jvp):
-        self.R, self.U, self.P, self.R_G = R, U, P, R_G
-        self.point_jvp = point_jvp  # (dF, dG) -> (dP, dR_G), linear
-
-    def jvp(self, scheme, scene, ctx, v: Unknowns) -> Unknowns:
-        """$R'(U) v$."""
-        _, dF, dG = jax.jvp(lambda u: nodal_fields(scheme, scene, ctx, u), (self.U,), (v,))[1]
-        dP, dR_G = self.point_jvp(dF, dG)
-        if self.R_G is None:
-            return jax.jvp(lambda u, p: assemble(scheme, scene, ctx, u, p, None), (self.U, self.P), (v, dP))[1]
-        return jax.jvp(lambda u, p, r: assemble(scheme, scene, ctx, u, p, r), (self.U, self.P, self.R_G),
-                       (v, dP, dR_G))[1]
-
-
-def linearize(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Linearization:
-    """`residual` at U and its linearization (see `Linearization`)."""
-    _, F, G = nodal_fields(scheme, scene, ctx, U)
-    if G is None:
-        (P, R_G), lin = jax.linearize(lambda f: point_outputs(scheme, scene, ctx, f, None), F)
-        point_jvp = lambda dF, dG: lin(dF)  # noqa: E731
-    else:
-        (P, R_G), point_jvp = jax.linearize(lambda f, g: point_outputs(scheme, scene, ctx, f, g), F, G)
-    return Linearization(assemble(scheme, scene, ctx, U, P, R_G), U, P, R_G, point_jvp)
 
 
 def constraint_scale(scene, h):

@@ -8,15 +8,6 @@ return-mapping code:
 
     dP/dF|total = ∂P/∂F + ∂P/∂Γ · dΓ/dF,   dΓ/dF = -(∂R_Γ/∂Γ)^{-1} ∂R_Γ/∂F.
 
-The local derivatives come from the Newton iteration's own linearization of the point
-kernel (`_step.linearize`), applied to the 9k + 6k unit directions one after the other
-(`lax.map`): the compiled program holds one linearized material law for the Krylov JVP
-and the tangent together, and only one direction's intermediates are alive at a time.
-Measured against a separate `jacfwd` of the point kernel (eG(1)): the whole 2D L-shape
-run compiles to 13 223 HLO instructions instead of 14 608, and the 3D L-shape (hex8
-refinement 4, 26 871 DOFs) peaks at 3.5 GB RSS instead of 4.9 GB (6.4 GB with all
-directions at once under `vmap`).
-
 The position block (the Schur complement) is assembled element by element into one
 sparse matrix (pattern fixed per mesh and degree) and factored on the host. `schur_solve`
 then solves the full linearized system exactly at the point where the tangent was
@@ -31,8 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._sparse import HostLU, lu_factor, lu_solve
-from ._step import Linearization, Unknowns, constraint_scale, force_term
-from ._tensor import small_inv, vec_to_sym
+from ._step import Unknowns, constraint_scale, force_term, nodal_fields
+from ._tensor import small_inv, sym_to_vec, vec_to_sym
 
 
 @functools.lru_cache(maxsize=32)
@@ -96,53 +87,77 @@ def empty_tangent(scheme, scene):
     return Tangent(*head, z((ne, nq, 6 * k, 6 * k)), z((ne, nq, 6 * k, 9 * k)), z((ne, nq, nq_t * 9, 6 * k)))
 
 
-def _condense(dP_dF, dP_dg, dR_dF, dR_dg):
-    """Eliminate Γ at one spatial point: (dP/dF total, A⁻¹, dΓ/dF, dP/dΓ)."""
-    Ainv = small_inv(dR_dg)
-    dG_dF = -Ainv @ dR_dF
-    return dP_dF + dP_dg @ dG_dF, Ainv, dG_dF, dP_dg
+def _point_tangent(scheme, material, h, F, G):
+    """Condensed sensitivities at one spatial point (F, G at the k+1 time nodes)."""
+    k = scheme.k
+    F0, Fu = F[0], F[1:]
+
+    if G is None:
+        def fun(Fu):
+            P, _ = scheme.point_kernel(material, jnp.concatenate([F0[None], Fu]), None, h)
+            return P
+        dP_dF = jax.jacfwd(fun)(Fu)
+        return dP_dF.reshape(-1, 9 * k), None, None, None
+
+    G0 = G[0]
+    gu = sym_to_vec(G[1:])
+
+    def fun(Fu, gu):
+        return scheme.point_kernel(material, jnp.concatenate([F0[None], Fu]),
+                                   jnp.concatenate([G0[None], vec_to_sym(gu)]), h)
+
+    (dP_dF, dP_dg), (dR_dF, dR_dg) = jax.jacfwd(fun, argnums=(0, 1))(Fu, gu)
+    nP = dP_dF.shape[0] * 9
+    Ainv = small_inv(dR_dg.reshape(6 * k, 6 * k))
+    dG_dF = -Ainv @ dR_dF.reshape(6 * k, 9 * k)
+    dP_dg = dP_dg.reshape(nP, 6 * k)
+    dP_dF_total = dP_dF.reshape(nP, 9 * k) + dP_dg @ dG_dF
+    return dP_dF_total, Ainv, dG_dF, dP_dg
 
 
-def point_sensitivities(scheme, scene, lin: Linearization):
-    """Derivatives of the point kernel with respect to the unknown deformation gradients
-    (9k) and internal variables (6k, Voigt) at every spatial point, from the step's
-    linearization: one vmap of its linear point map over the 9k + 6k unit directions
-    (the same linear program the Krylov solver's JVP runs; nothing is re-linearized).
-
-    **Returns:** `(dP/dF, dP/dg, dR/dF, dR/dg)`, shaped (n_cells, nq, rows, columns) with
-    rows (time point, 3, 3) of P and (time node, 6) of R_G, columns (node, 3, 3) and (node, 6).
-    """
-    k, disc = scheme.k, scene.disc
-    ne, nq = disc.n_cells, disc.n_qp
-    nF = 9 * k
-    zero_node = lambda n: jnp.zeros((n, 1, 3, 3))  # noqa: E731  (the start node is known)
-    dF = jnp.concatenate([zero_node(nF), jnp.eye(nF).reshape(nF, k, 3, 3)], axis=1)
-    spread = lambda d: jnp.broadcast_to(d[:, None, None], (d.shape[0], ne, nq) + d.shape[1:])  # noqa: E731
-    if lin.R_G is None:
-        dP, _ = jax.lax.map(lambda f: lin.point_jvp(f, None), spread(dF))
-        return jnp.moveaxis(dP, 0, -1).reshape(ne, nq, -1, nF), None, None, None
-    nG = 6 * k
-    dG = jnp.concatenate([zero_node(nG), vec_to_sym(jnp.eye(nG).reshape(nG, k, 6))], axis=1)
-    dirs_F = jnp.concatenate([dF, jnp.zeros((nG, k + 1, 3, 3))])
-    dirs_G = jnp.concatenate([jnp.zeros((nF, k + 1, 3, 3)), dG])
-    dP, dR = jax.lax.map(lambda fg: lin.point_jvp(*fg), (spread(dirs_F), spread(dirs_G)))
-    dP = jnp.moveaxis(dP, 0, -1).reshape(ne, nq, -1, nF + nG)
-    dR = jnp.moveaxis(dR, 0, -1).reshape(ne, nq, nG, nF + nG)
-    return dP[..., :nF], dP[..., nF:], dR[..., :nF], dR[..., nF:]
+# Spatial points whose local sensitivities (a forward-mode Jacobian in 9k + 6k
+# directions) are formed in one vectorized pass. On large meshes the passes run one
+# after the other (`lax.map`), so the Jacobian's intermediates of only this many points
+# are alive at a time: the 3D L-shape hex8 r4 (59 904 points, eG(1), 5 steps) peaked at
+# 4.9 GB RSS with all points at once and at 3.6 GB in passes of 4096, with the same
+# Newton and Krylov counts (3.4 and 8.8 per step). Small meshes (the 2D L-shape up to refinement 4) take
+# one pass, as before.
+_POINTS_PER_PASS = 4096
 
 
-def form_tangent(scheme, scene, ctx, lin: Linearization, rotation=None) -> Tangent:
-    """Condensed tangent at the point `lin` was taken (`_step.linearize`): local
-    inverses, sensitivities, and the factored position block
-    $A \\otimes M / h + h\\,\\sum_l W K_l$ (exact, with Γ eliminated)."""
+def _map_points(fn, xs):
+    """`vmap(fn)` over the leading (point) axis of the pytree `xs`, in passes of at most
+    `_POINTS_PER_PASS` points; the last pass is padded with copies of the first point."""
+    n = jax.tree_util.tree_leaves(xs)[0].shape[0]
+    if n <= _POINTS_PER_PASS:
+        return jax.vmap(fn)(xs)
+    b = _POINTS_PER_PASS
+    m = -(-n // b)
+    pad = m * b - n
+
+    def split(a):
+        if pad:
+            a = jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])])
+        return a.reshape((m, b) + a.shape[1:])
+
+    out = jax.lax.map(jax.vmap(fn), jax.tree_util.tree_map(split, xs))
+    return jax.tree_util.tree_map(lambda o: o.reshape((m * b,) + o.shape[2:])[:n], out)
+
+
+def form_tangent(scheme, scene, ctx, U, rotation=None) -> Tangent:
+    """Condensed tangent at U: local inverses, sensitivities, and the factored position
+    block $A \\otimes M / h + h\\,\\sum_l W K_l$ (exact, with Γ eliminated)."""
     m, _ = scheme.matrices()
     k, d, disc = scheme.k, scene.dim, scene.disc
-    dPdF, dPdG, dRdF, dRdG = point_sensitivities(scheme, scene, lin)
-    if dPdG is None:
-        Ainv = dGdF = None
-    else:
-        dPdF, Ainv, dGdF, dPdG = jax.vmap(jax.vmap(_condense))(dPdF, dPdG, dRdF, dRdG)
+    _, F, G = nodal_fields(scheme, scene, ctx, U)
+    point = functools.partial(_point_tangent, scheme, scene.material, ctx.h)
     ne, nq = disc.n_cells, disc.n_qp
+    flat = lambda a: a.reshape((ne * nq,) + a.shape[2:])  # noqa: E731
+    if G is None:
+        out = _map_points(lambda f: point(f, None), flat(F))
+    else:
+        out = _map_points(lambda fg: point(*fg), (flat(F), flat(G)))
+    dPdF, Ainv, dGdF, dPdG = (None if o is None else o.reshape((ne, nq) + o.shape[1:]) for o in out)
     nq_t = dPdF.shape[2] // 9
     dPdF = dPdF.reshape(ne, nq, nq_t, 3, 3, k, 3, 3)[:, :, :, :d, :d, :, :d, :d]
     W = jnp.asarray(m["W"])

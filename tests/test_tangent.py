@@ -1,10 +1,10 @@
-"""The step's linearization and condensed tangent, checked as identities.
+"""The step Jacobian and the condensed tangent, checked as identities.
 
 At an arbitrary (unconverged) point U of a time element:
-- the linearization's primal is the residual, and its JVP matches central differences of
-  the residual;
-- the block solve with the tangent formed from that linearization inverts the JVP: it is
-  the exact inverse of the step Jacobian where the tangent was formed.
+- the residual's JVP (what GMRES multiplies with) matches central differences;
+- the block solve with the tangent formed at U inverts the JVP: it is the exact inverse
+  of the step Jacobian where the tangent was formed. This holds with the points' local
+  Jacobians formed in one pass and in several (`_tangent._POINTS_PER_PASS`).
 """
 
 import jax
@@ -14,7 +14,8 @@ import pytest
 from helpers import central_difference, rel_err
 
 import jaxvisco as jv
-from jaxvisco._step import Unknowns, linearize, make_context, predictor, residual
+from jaxvisco import _tangent
+from jaxvisco._step import Unknowns, make_context, predictor, residual
 from jaxvisco._tangent import form_tangent, schur_solve
 
 
@@ -61,20 +62,22 @@ SCHEMES = [jv.eG(1), jv.eG(2), jv.cG(2), jv.Newmark()]
 @pytest.mark.parametrize("scheme", SCHEMES, ids=lambda s: s.name)
 @pytest.mark.parametrize("viscous,fixed", [(True, False), (False, False), (True, True)],
                          ids=["viscous", "elastic", "held-nodes"])
-def test_linearization_and_block_solve_are_exact(scheme, viscous, fixed):
+def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch):
     scene = _scene(viscous, fixed)
     ctx, U, v = _point(scheme, scene)
+    if viscous and not fixed:
+        # 156 points: passes of 50 points, the last one padded.
+        monkeypatch.setattr(_tangent, "_POINTS_PER_PASS", 50)
 
     @jax.jit
     def evaluate(ctx, U, v):
-        lin = linearize(scheme, scene, ctx, U)
-        Jv = lin.jvp(scheme, scene, ctx, v)
-        tan = form_tangent(scheme, scene, ctx, lin)
-        return lin.R, Jv, schur_solve(scheme, scene, ctx, tan, Jv)
+        _, jvp = jax.linearize(lambda u: residual(scheme, scene, ctx, u), U)
+        Jv = jvp(v)
+        tan = form_tangent(scheme, scene, ctx, U)
+        return Jv, schur_solve(scheme, scene, ctx, tan, Jv)
 
-    R, Jv, w = evaluate(ctx, U, v)
+    Jv, w = evaluate(ctx, U, v)
     res = jax.jit(lambda u: _flat(residual(scheme, scene, ctx, u)))
-    assert rel_err(_flat(R), res(U)) < 1e-14
     fd = central_difference(res, U, v, eps=1e-5, order=4)
     assert rel_err(_flat(Jv), fd) < 1e-7, rel_err(_flat(Jv), fd)
     # The block solve is the inverse of the Jacobian at the point the tangent was formed.
