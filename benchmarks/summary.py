@@ -3,7 +3,8 @@
     python benchmarks/summary.py
 
 Reads work_precision.json, stability.json, scaling.json, skip_cost.json, step_cost.json,
-profile_step.json and compile_cost.json (whichever exist) and writes the headline numbers and the issue's targets, met or not.
+profile_step.json and compile_cost.json (whichever exist) and writes the headline numbers
+and the issue's targets, met or not.
 """
 
 import json
