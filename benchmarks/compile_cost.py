@@ -25,7 +25,6 @@ from common import jv, lshape, machine, schemes, write_json  # noqa: I001
 import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
 from jaxvisco._krylov import gmres  # noqa: E402
 from jaxvisco._newton import solve_step  # noqa: E402
 from jaxvisco._simulate import _run  # noqa: E402
@@ -51,7 +50,7 @@ def part(name, dim, refinement, scheme_name, mass):
     res = lambda c, u: residual(scheme, scene, c, u)  # noqa: E731
 
     if name == "residual":
-        fn, args = (lambda c, u: res(c, u)), (ctx, U)
+        fn, args = res, (ctx, U)
     elif name == "linearize_jvp":
         fn, args = (lambda c, u, v: jax.linearize(lambda w: res(c, w), u)[1](v)), (ctx, U, U)
     elif name == "form_tangent":
@@ -130,5 +129,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    np.set_printoptions(precision=3)
     main()

@@ -204,7 +204,7 @@ def merge(names, out):
     data["merged_from"] = {n: dict(machine=d["machine"], settings=d["settings"],
                                    references={k: v["reference"] for k, v in d["scenes"].items()})
                            for n, d in zip(names, datas)}
-    for d in datas[1:]:
+    for name, d in zip(names[1:], datas[1:]):
         for key, sc in d["scenes"].items():
             if key not in data["scenes"]:
                 data["scenes"][key] = sc
@@ -216,7 +216,7 @@ def merge(names, out):
             if len(kept) < len(data["scenes"][key]["runs"]):
                 data["scenes"][key].setdefault("notes", []).append(
                     f"rows of {sorted(measured & {r['method'] for r in data['scenes'][key]['runs']})} replaced by "
-                    f"the runs of a separate process ({names[datas.index(d)]})")
+                    f"the runs of a separate process ({name})")
             data["scenes"][key]["runs"] = kept + sc["runs"]
             data["scenes"][key].setdefault("other_references", []).append(sc["reference"])
     for key, sc in data["scenes"].items():

@@ -120,8 +120,10 @@ def _point_tangent(scheme, material, h, F, G):
 # after the other (`lax.map`), so the Jacobian's intermediates of only this many points
 # are alive at a time: the 3D L-shape hex8 r4 (59 904 points, eG(1), 5 steps) peaked at
 # 4.9 GB RSS with all points at once and at 3.6 GB in passes of 4096, with the same
-# Newton and Krylov counts (3.4 and 8.8 per step). Small meshes (the 2D L-shape up to refinement 4) take
-# one pass, as before.
+# Newton and Krylov counts (3.4 and 8.8 per step). Small meshes (the 2D L-shape up to
+# refinement 4) take one pass, as before. The last pass is padded rather than left to
+# `lax.map(..., batch_size=)`, which traces the remainder as a second copy of the
+# Jacobian program (compile time).
 _POINTS_PER_PASS = 4096
 
 
