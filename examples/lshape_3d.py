@@ -16,7 +16,6 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jaxvisco as jv  # noqa: E402
-from jaxvisco._results import ResultsWriter  # noqa: E402
 
 
 def main(argv=None):
@@ -32,8 +31,7 @@ def main(argv=None):
     for t, h, d in zip(np.asarray(sol.t), H, D):
         print(f"t = {t:6.2f}  H = {h:.10g}  dissipated = {d:.6g}  balance error = {abs(h - H[0] + d) / H[0]:.2e}")
     if args.out:
-        with ResultsWriter(args.out, scene.mesh, dict(integrator=sol.integrator)) as w:
-            w.append(sol)
+        jv.save(sol, scene, args.out, overwrite=True)
     return sol
 
 

@@ -23,14 +23,18 @@ from ._mesh import Mesh as Mesh
 from ._newton import NewtonKrylov as NewtonKrylov
 from ._ode import SemiDiscrete as SemiDiscrete
 from ._ode import semidiscrete as semidiscrete
-from ._results import read_restart as read_restart
-from ._results import read_results as read_results
-from ._results import resume as resume
+from ._io import Restart as Restart
+from ._io import ResultsWriter as ResultsWriter
+from ._io import read_restart as read_restart
+from ._io import read_results as read_results
+from ._io import save as save
+from ._resume import resume as resume
 from ._scene import Scene as Scene
 from ._scene import State as State
-from ._simulate import Solution as Solution
-from ._simulate import SolverError as SolverError
+from ._schedule import StepTo as StepTo
 from ._simulate import simulate as simulate
+from ._solution import Solution as Solution
+from ._solution import SolverError as SolverError
 from ._time_element import (
     AbstractTimeElement as AbstractTimeElement,
 )

@@ -26,10 +26,10 @@ import jax
 import jax.numpy as jnp
 
 from ._implicit import solve_step_implicit
+from ._solution import DONE, FAILED, RUNNING, Solution
 from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent
 
-RUNNING, FAILED, DONE = 0, 1, 3
 
 
 def layout(n_steps, save_every, checkpoint_every=None):
@@ -42,19 +42,18 @@ def layout(n_steps, save_every, checkpoint_every=None):
 
 
 @eqx.filter_jit
-def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_gamma, m, n_seg, v0, use_v0, n_keep):
-    """hs: (n_seg * m * save_every,) step sizes, padded; steps >= n_active are skipped.
+def run_scan(scene, scheme, solver, state0, t0, hs, te, n_active, save_every, save_gamma, m, n_seg, v0, use_v0, n_keep):
+    """hs, te: (n_seg * m * save_every,) step sizes and end times, padded; steps >= n_active are skipped.
     n_keep (static): the schedule's step count; the padding is cut from the outputs so a
     traced Solution has exactly the schedule's frames and steps."""
-    from ._simulate import Solution
-
     diag0 = scene.diagnostics(state0)
     hs = hs.reshape(n_seg, m, save_every)
+    te = te.reshape(hs.shape)
     idx = jnp.arange(hs.size).reshape(hs.shape)
     fresh_tangent = empty_tangent(scheme, scene)
 
     def step(c, inp):
-        h, i = inp
+        h, t_next, i = inp
         active = (i < n_active) & (c["status"] == RUNNING)
 
         def attempt(c):
@@ -63,7 +62,7 @@ def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_g
             r = solve_step_implicit(solver, scheme, scene, ctx, U0, c["tan"])
             new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
             keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(ok, x, y), a, b)  # noqa: E731
-            out = dict(state=keep(new, c["state"]), t=jnp.where(ok, c["t"] + h, c["t"]),
+            out = dict(state=keep(new, c["state"]), t=jnp.where(ok, t_next, c["t"]),
                        v=keep(v_end, c["v"]), tan=r.tangent,
                        dissipated=c["dissipated"] + jnp.where(ok, D, 0.0),
                        work=c["work"] + jnp.where(ok, W, 0.0),
@@ -86,7 +85,7 @@ def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_g
         # recomputation in the backward pass repeats the forward pass exactly and never
         # needs an old factorization.
         c = dict(c, tan=fresh_tangent)
-        started = (inp[1][0] < n_active) & (c["status"] == RUNNING)
+        started = (inp[2][0] < n_active) & (c["status"] == RUNNING)
         c, steps = jax.lax.scan(step, c, inp)
         st = c["state"]
         out = dict(t=c["t"], x=st.x, p=st.p, dissipated=c["dissipated"], external_work=c["work"],
@@ -102,7 +101,7 @@ def run_scan(scene, scheme, solver, state0, t0, hs, n_active, save_every, save_g
     init = dict(state=state0, t=t0, v=jnp.where(use_v0, v0, scene.velocity(state0.p)), tan=fresh_tangent,
                 dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0), status=jnp.asarray(RUNNING),
                 n_done=jnp.asarray(0))
-    c, (frames, steps) = jax.lax.scan(segment, init, (hs, idx))
+    c, (frames, steps) = jax.lax.scan(segment, init, (hs, te, idx))
     n_frames = -(-n_keep // save_every)
     frames = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:n_frames], frames)
     steps = jax.tree_util.tree_map(lambda a: a.reshape(-1)[:n_keep], steps)

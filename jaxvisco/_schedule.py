@@ -1,45 +1,147 @@
-"""Step schedules: a constant step or piecewise-constant steps."""
+"""Step schedules: a constant step, piecewise-constant steps, or explicit step times.
+
+Every form is expanded on the host into the nominal step sizes `hs` and the exact end
+time of every step `ts`. Times are never accumulated step by step (``t + h + h + ...``
+drifts: 20 steps of 0.1 end at 2.0000000000000004): inside a piece that starts at `s`
+with step `h`, step `m` ends at ``s + m * h`` and the piece's last step ends at its
+`t_until` exactly.
+"""
+
+import math
 
 import numpy as np
 
 
-def step_sizes(t0, t_end, dt):
-    """Per-step sizes from t0 to t_end.
+class StepTo:
+    """Steps that end exactly at the times `ts` (as diffrax's ``StepTo``).
 
-    `dt` is a positive number or a list of `(t_until, dt)` pairs (piecewise constant; the
-    last step size continues up to `t_end`). A piece whose length is not a multiple of its
-    step is split into equal steps no longer than the given one.
+    `ts` holds the start time and then the end of every step, strictly increasing and
+    finite; step `i` runs from ``ts[i]`` to ``ts[i + 1]``. Give it as `dt` to
+    `simulate` (with ``t0 = ts[0]`` and ``t_end = ts[-1]``, or those left out).
+    ``StepTo.from_schedule(t0, t_end, dt)`` expands a constant step or a schedule, so
+    that a run can be advanced in pieces (``StepTo(steps.ts[i:j + 1])``) that repeat
+    the whole run's steps exactly.
     """
-    t0 = float(t0)
+
+    def __init__(self, ts):
+        try:
+            ts = np.array(ts, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"StepTo needs a 1-D sequence of times, got {ts!r}.") from None
+        if ts.ndim != 1 or ts.size < 2:
+            raise ValueError(f"StepTo needs at least two times (a start and one step end), got shape {ts.shape}.")
+        if not np.all(np.isfinite(ts)):
+            i = int(np.flatnonzero(~np.isfinite(ts))[0])
+            raise ValueError(f"StepTo times must be finite, got ts[{i}] = {ts[i]!r}.")
+        steps = np.diff(ts)
+        if not np.all(steps > 0):
+            i = int(np.flatnonzero(~(steps > 0))[0])
+            raise ValueError(f"StepTo times must increase strictly, got ts[{i}] = {ts[i]!r} then "
+                             f"ts[{i + 1}] = {ts[i + 1]!r}.")
+        ts.setflags(write=False)
+        self.ts = ts
+
+    @classmethod
+    def from_schedule(cls, t0, t_end, dt):
+        """The exact step times of a constant step or a schedule (see `step_times`)."""
+        return cls(step_times(t0, t_end, dt)[1])
+
+    @property
+    def t0(self):
+        return float(self.ts[0])
+
+    @property
+    def t_end(self):
+        return float(self.ts[-1])
+
+    def __len__(self):
+        return self.ts.size - 1
+
+    def __repr__(self):
+        return f"StepTo({len(self)} steps from t = {self.t0:.17g} to {self.t_end:.17g})"
+
+
+def _pieces(dt):
+    if isinstance(dt, (int, float, np.integer, np.floating)) and not isinstance(dt, bool):
+        return None
+    if np.ndim(dt) == 0:
+        raise ValueError(f"dt must be a positive number, a list of (t_until, dt) pairs or a StepTo, got {dt!r}.")
+    try:
+        pieces = [(float(a), float(b)) for a, b in dt]
+    except (TypeError, ValueError):
+        raise ValueError(f"dt must be a positive number, a list of (t_until, dt) pairs or a StepTo, "
+                         f"got {dt!r}.") from None
+    if not pieces:
+        raise ValueError("dt schedule is empty; give at least one (t_until, dt) pair.")
+    for i, (until, h) in enumerate(pieces):
+        if not (math.isfinite(h) and h > 0):
+            raise ValueError(f"dt must be positive and finite, got dt = {h!r} in schedule piece {i}.")
+        if math.isnan(until) or (math.isinf(until) and (until < 0 or i < len(pieces) - 1)):
+            raise ValueError(f"schedule piece {i} has t_until = {until!r}; accepted: finite times, and inf for the "
+                             "last piece only (its step then continues to any t_end).")
+        if i and not until > pieces[i - 1][0]:
+            raise ValueError(f"schedule times must increase: piece {i} ends at t_until = {until:g} after piece "
+                             f"{i - 1} ended at {pieces[i - 1][0]:g}; got {list(dt)!r}.")
+    return pieces
+
+
+def step_times(t0, t_end, dt):
+    """Nominal step sizes and exact end times of a run from `t0` to `t_end`.
+
+    `dt` is a positive number (a constant step), a list of ``(t_until, dt)`` pairs in
+    absolute times (piecewise constant; pieces that end at or before `t0` are skipped,
+    the last piece must reach `t_end`, or have ``t_until = inf`` to continue its step to
+    any `t_end`), or a `StepTo`. A piece whose length is not a multiple of its step is
+    split into equal steps no longer than the given one.
+
+    **Returns:** ``(hs, ts)``: `hs` (n,) the step sizes, `ts` (n + 1,) ``t0`` and the end
+    time of every step.
+    """
+    if isinstance(dt, StepTo):
+        ts = dt.ts
+        for name, value, ref in (("t0", t0, ts[0]), ("t_end", t_end, ts[-1])):
+            if value is not None and float(value) != float(ref):
+                raise ValueError(f"{name} = {value!r} disagrees with the StepTo times ({name} = {ref!r}); give "
+                                 f"{name}=None or the same time.")
+        return np.diff(ts), np.array(ts)
+    t0 = 0.0 if t0 is None else float(t0)
+    if t_end is None:
+        raise ValueError("t_end is required unless dt is a StepTo.")
     t_end = float(t_end)
     if not np.isfinite(t0) or not np.isfinite(t_end):
         raise ValueError(f"t0 and t_end must be finite, got t0={t0!r}, t_end={t_end!r}.")
     if t_end <= t0:
         raise ValueError(f"t_end must be greater than t0 = {t0}, got t_end = {t_end}.")
-    if np.isscalar(dt):
-        pieces = [(t_end, float(dt))]
-    else:
-        try:
-            pieces = [(float(a), float(b)) for a, b in dt]
-        except (TypeError, ValueError):
-            raise ValueError(f"dt must be a positive number or a list of (t_until, dt) pairs, got {dt!r}.") from None
-        if not pieces:
-            raise ValueError("dt schedule is empty; give at least one (t_until, dt) pair.")
-    hs = []
-    start = t0
-    for i, (until, h) in enumerate(pieces):
-        if not np.isfinite(h) or h <= 0:
+    pieces = _pieces(dt)
+    if pieces is None:
+        h = float(dt)
+        if not (math.isfinite(h) and h > 0):
             raise ValueError(f"dt must be positive and finite, got dt = {h!r}.")
-        if i == len(pieces) - 1:
-            until = max(until, t_end)
+        pieces = [(math.inf, h)]
+    last = pieces[-1][0]
+    if last < t_end and not math.isclose(last, t_end, rel_tol=1e-12, abs_tol=0.0):
+        raise ValueError(f"the dt schedule ends at t = {last:g}, before t_end = {t_end:g}: extend its last piece "
+                         f"(e.g. ({t_end:g}, {pieces[-1][1]:g})), or give float('inf') as its t_until to continue "
+                         "the last step to any t_end.")
+    hs, ts = [], [t0]
+    start = t0
+    for until, h in pieces:
         until = min(until, t_end)
+        if math.isclose(until, t_end, rel_tol=1e-12, abs_tol=0.0):
+            until = t_end  # a schedule that ends at t_end up to rounding ends there exactly
         if until <= start:
-            if i < len(pieces) - 1 and until < start:
-                raise ValueError(f"schedule times must increase: t_until = {until} after {start}.")
             continue
         n = int(np.ceil((until - start) / h - 1e-9))
-        hs.extend([(until - start) / n] * n)
+        h_piece = (until - start) / n
+        hs.extend([h_piece] * n)
+        ts.extend(start + h_piece * np.arange(1, n))
+        ts.append(until)
         start = until
         if start >= t_end:
             break
-    return np.asarray(hs, dtype=float)
+    return np.asarray(hs, dtype=float), np.asarray(ts, dtype=float)
+
+
+def step_sizes(t0, t_end, dt):
+    """Per-step sizes from `t0` to `t_end` (see `step_times`)."""
+    return step_times(t0, t_end, dt)[0]

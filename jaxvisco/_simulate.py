@@ -16,85 +16,13 @@ import numpy as np
 from ._differentiable import layout, run_scan
 from ._newton import NewtonKrylov, solve_step
 from ._scene import Scene, State
-from ._schedule import step_sizes
+from ._solution import DONE, EQUILIBRIUM, FAILED, RUNNING, Solution, SolverError
+from ._schedule import step_times
 from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent, position_pattern
 from ._tensor import small_solve
 from ._time_element import AbstractTimeElement
 from ._validation import check_finite
-
-RUNNING, FAILED, EQUILIBRIUM, DONE = 0, 1, 2, 3
-STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done"}
-
-
-class SolverError(RuntimeError):
-    """A time step could not be solved even at the smallest allowed step size.
-
-    **Attributes:** `t` (time of the last good state), `state` (that `State`),
-    `solution` (everything saved up to it).
-    """
-
-    def __init__(self, message, t, state, solution):
-        super().__init__(message)
-        self.t, self.state, self.solution = t, state, solution
-
-
-class Solution(eqx.Module):
-    """Saved frames and per-step solver statistics of a run.
-
-    Frames (leading axis = saved frame): `t`, `x`, `p`, `gamma` (if asked), `energy` (H),
-    `kinetic`, `free_energy`, `dissipated` (cumulative dissipation of the scheme),
-    `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`.
-    Steps: `step_t` (end time), `step_h`, `newton_iterations`, `krylov_iterations`,
-    `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
-    one of "done", "equilibrium", "failed".
-    """
-
-    t: jax.Array
-    x: jax.Array
-    p: jax.Array
-    gamma: Optional[jax.Array]
-    energy: jax.Array
-    kinetic: jax.Array
-    free_energy: jax.Array
-    dissipated: jax.Array
-    dissipation_rate: jax.Array
-    external_work: jax.Array
-    linear_momentum: jax.Array
-    angular_momentum: jax.Array
-    step_t: jax.Array
-    step_h: jax.Array
-    newton_iterations: jax.Array
-    krylov_iterations: jax.Array
-    residual: jax.Array
-    rejections: jax.Array
-    n_saved: jax.Array
-    n_steps: jax.Array
-    status_code: jax.Array
-    integrator: str = eqx.field(static=True, default="")
-    end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
-
-    @property
-    def status(self):
-        return STATUS[int(self.status_code)]
-
-    def trimmed(self):
-        """Drop the unused tail of the preallocated buffers (host side)."""
-        ns, nt = int(self.n_saved), int(self.n_steps)
-        frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
-                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
-        steps = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "residual", "rejections")
-        out = self
-        for name in frames:
-            if getattr(self, name) is not None:
-                out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:ns])
-        for name in steps:
-            out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:nt])
-        return out
-
-    def state(self, i=-1) -> State:
-        return State(self.x[i], self.p[i], None if self.gamma is None else self.gamma[i])
-
 
 def relative_kinetic_energy(scene: Scene, x, p):
     """Kinetic energy relative to the best-fitting rigid motion (mass-weighted)."""
@@ -117,7 +45,7 @@ def relative_kinetic_energy(scene: Scene, x, p):
     return T - 0.5 * jnp.dot(b, small_solve(G, b))
 
 
-def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, save_every=1,
+def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, save_every=1,
              solver: NewtonKrylov = NewtonKrylov(), save_gamma=False, stop_at_equilibrium=None,
              max_halvings=6, initial_state: Optional[State] = None, max_steps=None,
              throw=True, initial_velocity=None, differentiable=False, checkpoint_every=None) -> Solution:
@@ -125,8 +53,11 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
 
     **Arguments:**
     - `scene`, `integrator` (`cG(k)`, `eG(k)`, `Midpoint()`, `Newmark()`).
-    - `t_end`, `t0`; `dt`: a step or a schedule `[(t_until, dt), ...]` (piecewise
-      constant, e.g. `[(20.0, 0.1), (40.0, 0.5)]`).
+    - `t_end`, `t0` (default 0); `dt`: a step, a schedule `[(t_until, dt), ...]` in
+      absolute times (piecewise constant, e.g. `[(20.0, 0.1), (40.0, 0.5)]`; it must
+      reach `t_end`, or end with `t_until = inf`), or `StepTo(ts)` (steps ending at the
+      times `ts`; then `t0` and `t_end` may be None). Step end times are exact: a
+      piece's steps end at `start + m * h`, never at an accumulated sum.
     - `save_every`: keep every n-th step (the last step is always kept).
     - `solver`: `NewtonKrylov(...)` settings.
     - `save_gamma`: also keep the internal variable at the saved frames.
@@ -163,12 +94,14 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
         raise ValueError(f"stop_at_equilibrium must be a positive tolerance or None, got {stop_at_equilibrium!r}.")
     if not isinstance(max_halvings, (int, np.integer)) or not 0 <= max_halvings <= 30:
         raise ValueError(f"max_halvings must be an integer in [0, 30], got {max_halvings!r}.")
-    hs = step_sizes(t0, t_end, dt)
+    hs, ts = step_times(t0, t_end, dt)
+    t0, te = ts[0], ts[1:]
     n_active = len(hs)
     if max_steps is not None:
         if int(max_steps) < n_active:
             raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
         hs = np.concatenate([hs, np.ones(int(max_steps) - n_active)])
+        te = np.concatenate([te, te[-1] + np.arange(1, int(max_steps) - n_active + 1)])
     state0 = scene.initial_state() if initial_state is None else initial_state
     if initial_state is not None:
         ref = dict(x=scene.x0, p=scene.x0, gamma=scene.gamma0)
@@ -195,12 +128,15 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=0.0, s
         # step for the derivative, a few more for Newton when the segment is re-run).
         position_pattern(scene.disc.cells, integrator.k, scene.disc.n_nodes, scene.dim, scene.fixed).reserve(
             64 + 8 * m * int(save_every))
-        hs_pad = np.concatenate([hs[:n_active], np.ones(n_seg * m * int(save_every) - n_active)])
+        n_pad = n_seg * m * int(save_every) - n_active
+        hs_pad = np.concatenate([hs[:n_active], np.ones(n_pad)])
+        te_pad = np.concatenate([te[:n_active], te[n_active - 1] + np.arange(1, n_pad + 1)])
         sol = run_scan(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs_pad),
+                       jnp.asarray(te_pad),
                        jnp.asarray(n_active), int(save_every), bool(save_gamma), m, n_seg, v0, use_v0,
                        int(n_active))
         return _finish(sol, integrator, 0, throw)
-    sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs),
+    sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
                jnp.asarray(n_active), int(save_every), bool(save_gamma),
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
                int(max_halvings), v0, use_v0)
@@ -221,7 +157,7 @@ def _finish(sol, integrator, max_halvings, throw):
 
 
 @eqx.filter_jit
-def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0):
+def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0):
     n_frames = 1 + -(-hs.shape[0] // save_every)
     diag0 = scene.diagnostics(state0)
     H0 = diag0["energy"]
@@ -243,8 +179,9 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
             vals["gamma"] = state.gamma
         return {k: (None if b is None else b.at[idx].set(vals[k])) for k, b in frames.items()}
 
-    def advance(state, t, h, v, tan):
-        """One nominal step, halved on failure (dyadic sub-steps)."""
+    def advance(state, t, h, t_next, v, tan):
+        """One nominal step from t to t_next = t + h, halved on failure (dyadic sub-steps;
+        the sub-steps end at t + (pos / full) h, the last at t_next exactly)."""
 
         def cond(c):
             return (c["pos"] < full) & ~c["failed"]
@@ -261,7 +198,7 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
             level = jnp.where(ok, jnp.where((c["level"] > 0) & (pos % coarser == 0), c["level"] - 1, c["level"]),
                               c["level"] + 1)
             return dict(
-                state=pick(new, c["state"]), t=jnp.where(ok, c["t"] + hs_, c["t"]),
+                state=pick(new, c["state"]), t=jnp.where(pos == full, t_next, t + pos * (h / full)),
                 v=pick(v_end, c["v"]), tan=r.tangent, level=level, pos=pos,
                 its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
                 rej=c["rej"] + jnp.where(ok, 0, 1), D=c["D"] + jnp.where(ok, D, 0.0),
@@ -279,7 +216,7 @@ def _run(scene, scheme, solver, state0, t0, hs, n_steps, save_every, save_gamma,
 
     def body(c):
         i = c["i"]
-        a = advance(c["state"], c["t"], hs[i], c["v"], c["tan"])
+        a = advance(c["state"], c["t"], hs[i], te[i], c["v"], c["tan"])
         failed = a["failed"]
         dissipated, work = c["dissipated"] + a["D"], c["work"] + a["W"]
         status = jnp.where(failed, FAILED, RUNNING)

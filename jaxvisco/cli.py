@@ -9,7 +9,6 @@ progress can be printed and the results file grows as the run goes.
 """
 
 import argparse
-import inspect
 import math
 import os
 import sys
@@ -62,85 +61,73 @@ def chunk_size(lengths, target=50, save_every=1):
     return min(c, max(lengths))
 
 
-def _pieces(t_start, hs):
-    """A dt schedule that `simulate` turns back into exactly the steps `hs`."""
-    out, t = [], t_start
-    i = 0
-    while i < len(hs):
-        j = i
-        while j + 1 < len(hs) and hs[j + 1] == hs[i]:
-            j += 1
-        t = t + float(np.sum(hs[i:j + 1]))
-        out.append((t, float(hs[i]) * (1 + 1e-12)))
-        i = j + 1
-    return out, t
-
-
-def run_chunked(scene, integrator, hs, t0=0.0, chunk=50, save_every=1, solver=None, writer=None,
+def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every=1, solver=None, writer=None,
                 save_gamma=False, label="", quiet=False, stream=None, initial_state=None, initial_velocity=None,
                 should_stop=None, max_halvings=6):
-    """Integrate over the steps `hs` in chunks of `chunk` steps, appending to `writer`.
+    """Integrate over the steps of `steps` (a `StepTo`) in chunks, committing each one.
 
-    Each chunk starts from the previous chunk's last state and predictor velocity, so
-    the chunks continue one run; `initial_state`/`initial_velocity` continue a saved run
-    (a restart: its first frame is not written again). `should_stop()` is asked after
-    every chunk; when true the run ends with status "interrupted".
+    A new `writer` first commits frame 0 (before anything compiles), so a run killed at
+    any moment can be resumed. Every chunk is one call of one compiled program (capacity
+    `chunk` steps) that continues from the previous chunk's last state and predictor
+    velocity, and is committed to `writer` when it returns. With `commit_every` > 0
+    (seconds) the chunks are sized from the measured time per step so that a commit
+    follows at least about every `commit_every` seconds: the first chunk of a process is
+    `save_every` steps (it also compiles), later ones as many as fit, at most `chunk`.
+    With `commit_every` = 0 every chunk has `chunk` steps, so a run split at a chunk
+    boundary repeats the uninterrupted one exactly (the reused tangent that
+    preconditions the Krylov solver starts afresh at every chunk, so other splits agree
+    to the Newton tolerance). `initial_state`/`initial_velocity` continue a saved run.
+    `should_stop()` is asked after every chunk; when true the run ends "interrupted".
 
-    Returns a dict: `t`, `energy` (all saved frames), `status`, `steps`, `wall`,
-    `newton` (total iterations), `state` (last state).
+    Returns a dict: `status`, `steps` (taken), `newton` (total iterations), `wall`,
+    `state` (last state), `t_last`, `energy_last`, `commits`.
     """
-    import jax.numpy as jnp
-
     import jaxvisco as jv
 
     stream = stream or sys.stderr
     solver = solver or jv.NewtonKrylov()
-    hs = np.asarray(hs, dtype=float)
-    n = len(hs)
-    state, t, v = initial_state, float(t0), initial_velocity
-    resumed = initial_state is not None
-    ts, Hs = [], []
-    status, done, newton = "done", 0, 0
+    ts = np.asarray(steps.ts)
+    n = len(ts) - 1
+    state, v = initial_state, initial_velocity
     start = time.perf_counter()
+    if writer is not None and writer.n_frames == 0:
+        writer.write_initial_state(float(ts[0]), state, v)
+    status, i, newton, per_step, commits, H = "done", 0, 0, None, 0, float("nan")
     if not quiet:
-        print(f"{label}: {n} steps in chunks of {chunk} (the first chunk compiles, ~30-60 s)", file=stream, flush=True)
-    extra = {}
-    if "max_steps" in inspect.signature(jv.simulate).parameters:
-        extra["max_steps"] = chunk  # a shorter last chunk reuses the compiled program
-    for i0 in range(0, n, chunk):
-        h = hs[i0:i0 + chunk]
-        dt, t_end = _pieces(t, h)
-        sol = jv.simulate(scene, integrator, t_end=t_end, dt=dt, t0=t, save_every=save_every, solver=solver,
+        print(f"{label}: {n} steps; frame 0 written, the first chunk compiles (~10-60 s)", file=stream, flush=True)
+    while i < n:
+        m = chunk
+        if commit_every > 0:
+            m = save_every if per_step is None else int(commit_every / max(per_step, 1e-9))
+            m = max(save_every, min(chunk, m) // save_every * save_every)
+        m = min(m, n - i)
+        t_call = time.perf_counter()
+        sol = jv.simulate(scene, integrator, None, jv.StepTo(ts[i:i + m + 1]), save_every=save_every, solver=solver,
                           save_gamma=True, initial_state=state, throw=False, initial_velocity=v,
-                          max_halvings=max_halvings, **extra)
-        first = state is None
+                          max_halvings=max_halvings, max_steps=chunk)
+        per_step = (time.perf_counter() - t_call) / m  # the first call also compiles: an overestimate
         if writer is not None:
-            writer.append(sol, skip_first=not first, gamma=save_gamma)
-        s = 0 if (first or (resumed and not ts)) else 1
-        ts.extend(np.asarray(sol.t)[s:].tolist())
-        Hs.extend(np.asarray(sol.energy)[s:].tolist())
+            writer.append(sol, skip_first=True, gamma=save_gamma)
+            commits += 1
         ns = int(len(np.asarray(sol.step_t)))
-        done += ns
+        i += ns
         its = np.asarray(sol.newton_iterations)
         newton += int(its.sum())
-        state = sol.state(-1)
-        v = sol.end_velocity
-        t = float(np.asarray(sol.t)[-1])
+        state, v = sol.state(-1), sol.end_velocity
+        H = float(np.asarray(sol.energy)[-1])
         if not quiet:
-            print(f"{label}: t = {t:9.4f}  step {done:6d}/{n}  newton/step {its.mean() if ns else 0:4.1f}"
-                  f"  H = {Hs[-1]:.8g}", file=stream, flush=True)
-        if sol.status == "failed":
-            status = "failed"
+            print(f"{label}: t = {float(np.asarray(sol.t)[-1]):9.4f}  step {i:6d}/{n}  newton/step "
+                  f"{its.mean() if ns else 0:4.1f}  H = {H:.8g}", file=stream, flush=True)
+        if sol.status in ("failed", "equilibrium"):
+            status = sol.status
             break
-        if sol.status == "equilibrium":
-            status = "equilibrium"
-            break
-        if should_stop is not None and should_stop() and i0 + chunk < n:
+        if should_stop is not None and should_stop() and i < n:
             status = "interrupted"
             break
-    state = jv.State(jnp.asarray(state.x), jnp.asarray(state.p), state.gamma)
-    return dict(t=np.asarray(ts), energy=np.asarray(Hs), status=status, steps=done, newton=newton,
-                wall=time.perf_counter() - start, state=state, t_last=t)
+    state = jv.State(np.asarray(state.x), np.asarray(state.p), None if state.gamma is None else np.asarray(state.gamma))
+    return dict(status=status, steps=i, newton=newton, wall=time.perf_counter() - start, state=state,
+                t_last=float(ts[i]) if status != "failed" else float(np.asarray(sol.t)[-1]), energy_last=H,
+                commits=commits)
 
 
 # ---------------------------------------------------------------- scenes and integrators
@@ -206,11 +193,8 @@ def _paper(args):
     import matplotlib.pyplot as plt
 
     import jaxvisco as jv
-    from jaxvisco._results import ResultsWriter, scene_attributes
-    from jaxvisco._schedule import step_sizes
 
     out = args.out
-    os.makedirs(out, exist_ok=True)
     if args.quick:
         T = QUICK_T if args.t_end is None else args.t_end
     else:
@@ -218,27 +202,36 @@ def _paper(args):
     # h = 0.2 is already too large for cG(1) before t = 20 (its energy grows ~9x by
     # t = 19); h = 0.1 keeps it bounded there, and running it costs little beside
     # compilation, so --quick only shortens the final time.
-    schedule = [(20.0, 0.1), (T, 1.0)]
+    schedule = [(20.0, 0.1), (T, 1.0)] if T > 20.0 else [(T, 0.1)]
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    runs = [("schedule", step_sizes(0.0, T, schedule)), ("large", step_sizes(0.0, T, 1.0))]
-    c = chunk_size([len(h) for _, h in runs], target=50)
+    runs = [("schedule", jv.StepTo.from_schedule(0.0, T, schedule)), ("large", jv.StepTo.from_schedule(0.0, T, 1.0))]
+    c = chunk_size([len(steps) for _, steps in runs], target=50)
+    integrators = (("cG1", jv.cG(1)), ("eG1", jv.eG(1)))
+    paths = {f"{a}_{b}": os.path.join(out, f"{a}_{b}.h5") for a, _ in integrators for b, _ in runs}
+    existing = [p for p in paths.values() if os.path.exists(p)]
+    if existing and not args.overwrite:
+        raise FileExistsError(f"results file {existing[0]!r} exists; pass --overwrite to replace the results in "
+                              f"{out!r}, or choose another --out.")
+    os.makedirs(out, exist_ok=True)
     results = []
-    for scheme_name, integrator in (("cG1", jv.cG(1)), ("eG1", jv.eG(1))):
-        for sched_name, hs in runs:
+    for scheme_name, integrator in integrators:
+        for sched_name, steps in runs:
             label = f"{scheme_name}_{sched_name}"
-            path = os.path.join(out, label + ".h5")
-            attrs = dict(scene_attributes(scene), scene="lshape", refinement=1, integrator=integrator.describe(),
+            path = paths[label]
+            attrs = dict(scene="lshape", refinement=1, integrator=integrator.describe(),
                          parameters=dict(schedule=schedule if sched_name == "schedule" else [(T, 1.0)], t_end=T))
-            w = ResultsWriter(path, scene.mesh, attrs)
+            w = jv.ResultsWriter(path, scene, attrs, overwrite=args.overwrite)
             status = "failed"
             try:
-                r = run_chunked(scene, integrator, hs, chunk=c, writer=w, label=label, quiet=args.quiet)
+                r = run_chunked(scene, integrator, steps, chunk=c, writer=w, label=label, quiet=args.quiet)
                 status = r["status"]
             except KeyboardInterrupt:
                 status = "interrupted"
                 raise
             finally:
                 w.close(status=status)
+            saved = jv.read_results(path)
+            r.update(t=saved["t"], energy=saved["energy"])
             results.append((scheme_name, sched_name, r))
             sched_txt = "h=0.1->1.0@t=20" if sched_name == "schedule" else "h=1.0"
             print(f"{scheme_name:4s} {sched_txt:16s} status={r['status']:11s} H0={r['energy'][0]:.6g} "
@@ -280,9 +273,9 @@ _RESUMABLE = ("t_end", "quiet", "resume")
 def _resume_args(args):
     """The options of the run stored in `args.resume`, with `--t-end` and `--quiet`
     taken from the command line."""
-    from jaxvisco._results import read_restart
+    import jaxvisco as jv
 
-    restart = read_restart(args.resume)
+    restart = jv.read_restart(args.resume)
     given = {k: v for k, v in vars(args).items() if k not in ("func",) + _RESUMABLE}
     defaults = {k: v for k, v in vars(build_parser().parse_args(["run"])).items() if k in given}
     changed = sorted(k for k, v in given.items() if v != defaults[k])
@@ -335,12 +328,12 @@ class _StopOnSigint:
 
 def _run(args):
     import jaxvisco as jv
-    from jaxvisco._results import ResultsWriter, scene_attributes
-    from jaxvisco._schedule import step_sizes
 
     restart = None
     if args.resume is not None:
         args, restart = _resume_args(args)
+    if args.commit_every is None:
+        args.commit_every = 5.0
     if args.dt is not None and args.schedule is not None:
         raise ValueError("give either --dt or --schedule, not both.")
     if args.mesh is not None and not os.path.isfile(args.mesh):
@@ -349,49 +342,63 @@ def _run(args):
         raise ValueError(f"--save-every must be >= 1, got {args.save_every}.")
     if args.chunk < 1:
         raise ValueError(f"--chunk must be >= 1, got {args.chunk}.")
+    if not (math.isfinite(args.commit_every) and args.commit_every >= 0):
+        raise ValueError(f"--commit-every must be a number of seconds >= 0 (0: every --chunk steps), "
+                         f"got {args.commit_every!r}.")
     if not 0 <= args.max_halvings <= 30:
         raise ValueError(f"--max-halvings must be an integer in [0, 30], got {args.max_halvings}.")
     if args.t_end is not None and not math.isfinite(args.t_end):
         raise ValueError(f"--t-end must be a finite time > 0, got {args.t_end!r}.")
+    if restart is None and os.path.exists(args.out) and not args.overwrite:
+        raise FileExistsError(f"results file {args.out!r} exists; pass --overwrite to replace it, or continue it "
+                              f"with --resume {args.out}.")
     integrator = make_integrator(args.integrator, args.order)
     scene = make_scene(dim=args.dim, refinement=args.refinement, element=args.element, mesh=args.mesh,
                        lam=args.lam, mu=args.mu, density=args.density, eta_dev=args.eta_dev, eta_vol=args.eta_vol)
     if args.schedule is not None:
         dt = parse_schedule(args.schedule)
         t_end = args.t_end if args.t_end is not None else dt[-1][0]
+        if t_end > dt[-1][0]:
+            if restart is None:
+                raise ValueError(f"--schedule {args.schedule!r} ends at t = {dt[-1][0]:g}, before --t-end {t_end:g}: "
+                                 f"add a piece that reaches it, e.g. '{args.schedule},{t_end:g}:{dt[-1][1]:g}'.")
+            dt[-1] = (math.inf, dt[-1][1])  # --resume --t-end: the last step continues
+        try:
+            steps = jv.StepTo.from_schedule(0.0, t_end, dt)
+        except ValueError as e:
+            raise ValueError(f"--schedule {args.schedule!r}: {e}") from None
     else:
-        dt = 0.1 if args.dt is None else args.dt
         t_end = 1.0 if args.t_end is None else args.t_end
-    hs = step_sizes(0.0, t_end, dt)
-    c = chunk_size([len(hs)], target=args.chunk, save_every=args.save_every)
-    t0, state0, v0 = 0.0, None, None
+        steps = jv.StepTo.from_schedule(0.0, t_end, 0.1 if args.dt is None else args.dt)
+    c = chunk_size([len(steps)], target=args.chunk, save_every=args.save_every)
+    state0, v0, ts = None, None, steps.ts
     if restart is not None:
         done = restart.n_steps
-        t_done = float(np.sum(hs[:done]))
-        if done >= len(hs) or restart.t >= t_end * (1 - 1e-12):
+        if done >= len(steps) or restart.t >= t_end * (1 - 1e-12):
             raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} (t_end = {t_end:.6g}); "
                              "give a later --t-end to continue it.")
-        if not math.isclose(t_done, restart.t, rel_tol=1e-9, abs_tol=1e-12):
+        if not math.isclose(ts[done], restart.t, rel_tol=1e-9, abs_tol=1e-12):
             raise ValueError(f"{args.resume!r}: its {done} steps end at t = {restart.t:.17g}, but the stored schedule "
-                             f"puts step {done} at t = {t_done:.17g}; it cannot be continued with --t-end {t_end:g}.")
-        if restart.state.x.shape != scene.initial_state().x.shape:
+                             f"puts step {done} at t = {ts[done]:.17g}; it cannot be continued with --t-end {t_end:g}.")
+        if restart.state.x.shape != scene.x0.shape:
             raise ValueError(f"{args.resume!r}: stored state has shape {restart.state.x.shape}, the scene has "
-                             f"{scene.initial_state().x.shape}.")
-        hs, t0, state0, v0 = hs[done:], restart.t, restart.state, restart.velocity
+                             f"{scene.x0.shape}.")
+        ts = np.concatenate([[restart.t], ts[done + 1:]])
+        state0, v0 = restart.state, restart.velocity
     params = {k: v for k, v in vars(args).items() if k != "func"}
-    params["t_end"] = t_end
-    attrs = dict(scene_attributes(scene), scene=("mesh:" + args.mesh) if args.mesh else "lshape",
-                 integrator=integrator.describe(), parameters=params)
+    params.update(t_end=t_end, dim=scene.dim)
     if restart is not None:
-        w = ResultsWriter(args.out, append=True, attrs={"parameters": params})
+        w = jv.ResultsWriter(args.out, append=True, attrs={"parameters": params})
     else:
-        w = ResultsWriter(args.out, scene.mesh, attrs)
+        attrs = dict(scene=("mesh:" + args.mesh) if args.mesh else "lshape", integrator=integrator.describe(),
+                     parameters=params)
+        w = jv.ResultsWriter(args.out, scene, attrs, overwrite=args.overwrite)
     status = "failed"
     try:
         with _StopOnSigint(args.quiet) as stop:
-            r = run_chunked(scene, integrator, hs, t0=t0, chunk=c, save_every=args.save_every, writer=w,
-                            save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet,
-                            initial_state=state0, initial_velocity=v0, should_stop=stop,
+            r = run_chunked(scene, integrator, jv.StepTo(ts), chunk=c, commit_every=args.commit_every,
+                            save_every=args.save_every, writer=w, save_gamma=args.save_gamma, label=integrator.name,
+                            quiet=args.quiet, initial_state=state0, initial_velocity=v0, should_stop=stop,
                             max_halvings=args.max_halvings)
         status = r["status"]
     except KeyboardInterrupt:
@@ -399,8 +406,10 @@ def _run(args):
         raise
     finally:
         w.close(status=status)
-    print(f"{integrator.name}: status={status} H0={r['energy'][0]:.8g} H_end={r['energy'][-1]:.8g} "
-          f"t={r['t_last']:.6g} steps={r['steps']} wall={r['wall']:.1f}s -> {args.out}", flush=True)
+    saved = jv.read_results(args.out)
+    H = saved["energy"]
+    print(f"{integrator.name}: status={status} H0={H[0]:.8g} H_end={H[-1]:.8g} t={saved['t'][-1]:.6g} "
+          f"steps={len(saved['step_t'])} (this call {r['steps']}) wall={r['wall']:.1f}s -> {args.out}", flush=True)
     if status == "failed":
         raise jv.SolverError(f"{integrator.name}: the step after t = {r['t_last']:.6g} did not converge; "
                              f"results up to it are in {args.out}", r["t_last"], r["state"], None)
@@ -476,6 +485,7 @@ def build_parser():
     q.add_argument("--t-end", type=float, default=None, help=f"final time (default {PAPER_T:g}, {QUICK_T:g} with --quick)")
     q.add_argument("--out", default="paper-out", help="output directory (default: paper-out)")
     q.add_argument("--quiet", action="store_true", help="no progress lines")
+    q.add_argument("--overwrite", action="store_true", help="replace existing results files in --out")
     q.set_defaults(func=_paper)
 
     r = sub.add_parser("run", help="integrate a built-in L-shape or a mesh file",
@@ -497,12 +507,17 @@ def build_parser():
     r.add_argument("--max-halvings", type=int, default=6,
                    help="a failed step is halved at most N times (smallest step h/2**N) before the run stops "
                    "(default 6)")
-    r.add_argument("--chunk", type=int, default=50, help="steps per compiled chunk (progress granularity; default 50)")
+    r.add_argument("--chunk", type=int, default=50, help="at most N steps per compiled call (default 50)")
+    r.add_argument("--commit-every", type=float, default=None, metavar="SECONDS",
+                   help="commit the results at least about every SECONDS of computing (chunks sized from the "
+                   "measured time per step; default 5); 0: commit every --chunk steps, so that a run split at a "
+                   "commit repeats the uninterrupted one exactly")
+    r.add_argument("--overwrite", action="store_true", help="replace an existing results file")
     r.add_argument("--out", default="jaxvisco-run.h5", help="results file (default jaxvisco-run.h5); an .xdmf goes beside it")
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     r.add_argument("--resume", default=None, metavar="RESULTS.h5",
                    help="continue the run stored in RESULTS.h5 (appending to it) with its own options; "
-                   "--t-end extends it")
+                   "--t-end extends it (a --schedule's last step continues)")
     r.set_defaults(func=_run)
 
     pl = sub.add_parser("plot", help="plot energy, energy balance and momenta from a results file",

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 import jaxvisco as jv
-from jaxvisco._results import ResultsWriter, read_results, write_xdmf
+from jaxvisco import ResultsWriter, read_results
+from jaxvisco._io import write_xdmf
 
 
 def fake_solution(n_frames, t0, mesh, D0=0.0):
@@ -176,3 +177,194 @@ def test_paraview_opens_xdmf(tmp_path, dim):
         np.testing.assert_allclose(np.asarray(r["bounds"]).reshape(3, 2), np.stack([lo, hi], 1), atol=1e-12,
                                    err_msg=name)
         assert {"displacement", "momentum"} <= set(r["arrays"]), name
+
+
+# ------------------------------------------------------------------ crash consistency
+
+_H5_OPS = [("Dataset", "__setitem__"), ("Dataset", "resize"), ("AttributeManager", "__setitem__"),
+           ("Group", "create_dataset"), ("Group", "__delitem__"), ("File", "flush")]
+
+
+@pytest.fixture(autouse=False)
+def _fork_ok():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+        yield
+
+
+def _killed_at(n, work):
+    """Run `work()` in a forked child that SIGKILLs itself just before its n-th h5py
+    write operation (dataset writes and resizes, attribute writes, creations, deletions,
+    flushes). Returns True if the kill happened, False if `work` finished first."""
+    import signal
+
+    import h5py
+
+    pid = os.fork()
+    if pid == 0:  # child: no JAX here, h5py and numpy only
+        try:
+            count = [0]
+            for cls_name, meth in _H5_OPS:
+                cls = getattr(h5py, cls_name)
+                orig = getattr(cls, meth)
+
+                def patched(self, *a, _orig=orig, **k):
+                    count[0] += 1
+                    if count[0] == n:
+                        os.kill(os.getpid(), signal.SIGKILL)
+                    return _orig(self, *a, **k)
+
+                setattr(cls, meth, patched)
+            work()
+        finally:
+            os._exit(0)
+    _, status = os.waitpid(pid, 0)
+    return os.WIFSIGNALED(status)
+
+
+def _commits(mesh, path, n_chunks=3):
+    """The appends of a 3-chunk run (frames 0..4, 4..7, 7..10)."""
+    sols = [fake_solution(5, 0.0, mesh)] + [fake_solution(4, 0.4 + 0.3 * i, mesh) for i in range(n_chunks - 1)]
+    for s in sols:
+        s.end_velocity = s.p[-1] * 0.5
+    return sols
+
+
+def test_kill_at_every_write_of_an_append(tmp_path, mesh, _fork_ok):
+    """A SIGKILL before any single HDF5 operation of an append leaves a file whose committed
+    state is the one before or after the append, whose restart state is its last frame, and
+    which a restart continues to the same file as an uninterrupted writer."""
+    chunks = _commits(mesh, None)
+    ref = tmp_path / "ref.h5"
+    with ResultsWriter(ref, mesh) as w:
+        for i, s in enumerate(chunks):
+            w.append(s, skip_first=i > 0, gamma=True)
+    full = read_results(ref)
+    base = tmp_path / "base.h5"
+    with ResultsWriter(base, mesh) as w:
+        w.append(chunks[0], gamma=True)
+        w.append(chunks[1], skip_first=True, gamma=True)
+    before = read_results(base)
+
+    def append_third(path):
+        w = ResultsWriter(path, append=True)
+        w.append(chunks[2], skip_first=True, gamma=True)
+        w.close(status="done")
+
+    outcomes = set()
+    for n in range(1, 200):
+        path = tmp_path / f"k{n}.h5"
+        shutil.copy(base, path)
+        killed = _killed_at(n, lambda: append_third(path))
+        r = read_results(path)
+        k = len(r["t"])
+        assert k in (len(before["t"]), len(full["t"])), (n, k)
+        for key in ("t", "x", "p", "gamma", "energy", "dissipated", "step_t"):
+            np.testing.assert_array_equal(r[key], full[key][:len(r[key])], err_msg=f"{key} after kill {n}")
+        rs = jv.read_restart(path)  # verified: the restart state is the last committed frame
+        assert rs.t == r["t"][-1] and rs.n_frames == k
+        np.testing.assert_array_equal(rs.state.x, r["x"][-1])
+        if k == len(before["t"]):  # continue: the same file as the uninterrupted writer
+            append_third(path)
+        again = read_results(path)
+        for key in ("t", "x", "p", "gamma", "energy", "dissipated", "step_t", "newton_iterations"):
+            np.testing.assert_array_equal(again[key], full[key], err_msg=f"{key} resumed after kill {n}")
+        np.testing.assert_array_equal(jv.read_restart(path).velocity, jv.read_restart(ref).velocity)
+        outcomes.add((killed, k))
+        if not killed:
+            break
+    assert not killed, "the append did not finish within 200 operations"
+    assert n > 20 and (True, len(before["t"])) in outcomes  # kills hit many operations, before the commit too
+
+
+def test_kill_while_creating_leaves_no_file_or_frame_zero(tmp_path, mesh, _fork_ok):
+    """A new file appears under its name only with a committed frame; an old file replaced
+    with overwrite stays intact until then."""
+    sol = fake_solution(3, 0.0, mesh)
+    path = tmp_path / "new.h5"
+    old = tmp_path / "old.h5"
+    with ResultsWriter(old, mesh) as w:
+        w.append(fake_solution(2, 5.0, mesh))
+    old_t = read_results(old)["t"]
+    seen = set()
+    for n in range(1, 200):
+        for p in (path, old):
+            if p == path and p.exists():
+                p.unlink()
+        replaced = tmp_path / f"rep{n}.h5"
+        shutil.copy(old, replaced)
+
+        def create():
+            for target, overwrite in ((path, False), (replaced, True)):
+                w = ResultsWriter(target, mesh, overwrite=overwrite)
+                w.append(sol)
+                w.close(status="done")
+
+        killed = _killed_at(n, create)
+        if path.exists():
+            r = read_results(path)
+            assert len(r["t"]) == 3 and jv.read_restart(path).t == r["t"][-1]
+        rt = read_results(replaced)["t"]
+        assert np.array_equal(rt, old_t) or np.array_equal(rt, sol.t), n
+        seen.add((path.exists(), np.array_equal(rt, old_t)))
+        if not killed:
+            break
+    assert not killed and (False, True) in seen and (True, False) in seen
+
+
+def test_inconsistent_restart_refused(tmp_path, mesh):
+    path = tmp_path / "r.h5"
+    with ResultsWriter(path, mesh) as w:
+        w.append(fake_solution(4, 0.0, mesh), gamma=True)
+    with h5py.File(path, "r+") as f:
+        slot = "restart/slot%d" % ((f.attrs["committed"][2] - 1) % 2)
+        f[slot + "/x"][0, 0] += 0.5
+    with pytest.raises(ValueError, match=r"inconsistent: its restart state disagrees with its last committed frame "
+                                         r"\(max \|restart.x - x\[3\]\| = 0.5\)"):
+        jv.read_restart(path)
+    with pytest.raises(ValueError, match="inconsistent"):
+        ResultsWriter(path, append=True)
+    with h5py.File(path, "r+") as f:
+        f[slot + "/x"][0, 0] -= 0.5
+        f[slot].attrs["t"] = 0.4
+    with pytest.raises(ValueError, match=r"restart t = 0.4, last frame t = 0.3"):
+        jv.read_restart(path)
+
+
+def test_format1_file_read_and_migrated(tmp_path, mesh):
+    """A file written before the two-phase commit (counters as attributes, one restart group)
+    is read, verified and continued."""
+    path = tmp_path / "v1.h5"
+    with ResultsWriter(path, mesh) as w:
+        w.append(fake_solution(4, 0.0, mesh), gamma=True)
+    with h5py.File(path, "r+") as f:  # rewrite as format 1
+        n_frames, n_steps, n_commits = (int(v) for v in f.attrs["committed"])
+        f.copy(f"restart/slot{(n_commits - 1) % 2}", "old")
+        del f["restart"]
+        f.move("old", "restart")
+        del f.attrs["committed"], f.attrs["format"]
+        f.attrs["n_frames"], f.attrs["n_steps"] = n_frames, n_steps
+    assert jv.read_restart(path).t == pytest.approx(0.3)
+    w = ResultsWriter(path, append=True)
+    w.append(fake_solution(3, 0.3, mesh), skip_first=True, gamma=True)
+    w.close(status="done")
+    r = read_results(path)
+    assert len(r["t"]) == 6 and jv.read_restart(path).t == r["t"][-1]
+    with h5py.File(path, "r") as f:
+        assert f.attrs["format"] == 2 and "n_frames" not in f.attrs
+
+
+def test_existing_file_not_overwritten(tmp_path, mesh):
+    path = tmp_path / "r.h5"
+    with ResultsWriter(path, mesh) as w:
+        w.append(fake_solution(2, 0.0, mesh))
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match=r"r.h5' exists; pass overwrite=True"):
+        ResultsWriter(path, mesh)
+    with pytest.raises(FileExistsError, match="exists"):
+        jv.save(fake_solution(3, 0.0, mesh), mesh, path)
+    assert path.read_bytes() == before
+    jv.save(fake_solution(3, 0.0, mesh), mesh, path, overwrite=True)
+    assert len(read_results(path)["t"]) == 3

@@ -1,0 +1,103 @@
+"""What a run returns: `Solution`, its status codes, and `SolverError`."""
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._scene import State
+
+RUNNING, FAILED, EQUILIBRIUM, DONE = 0, 1, 2, 3
+STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done"}
+
+
+class SolverError(RuntimeError):
+    """A time step could not be solved even at the smallest allowed step size.
+
+    **Attributes:** `t` (time of the last good state), `state` (that `State`),
+    `solution` (everything saved up to it).
+    """
+
+    def __init__(self, message, t, state, solution):
+        super().__init__(message)
+        self.t, self.state, self.solution = t, state, solution
+
+
+class Solution(eqx.Module):
+    """Saved frames and per-step solver statistics of a run.
+
+    Frames (leading axis = saved frame): `t`, `x`, `p`, `gamma` (if asked), `energy` (H),
+    `kinetic`, `free_energy`, `dissipated` (cumulative dissipation of the scheme),
+    `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`.
+    Steps: `step_t` (end time), `step_h`, `newton_iterations`, `krylov_iterations`,
+    `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
+    one of "done", "equilibrium", "failed".
+    """
+
+    t: jax.Array
+    x: jax.Array
+    p: jax.Array
+    gamma: Optional[jax.Array]
+    energy: jax.Array
+    kinetic: jax.Array
+    free_energy: jax.Array
+    dissipated: jax.Array
+    dissipation_rate: jax.Array
+    external_work: jax.Array
+    linear_momentum: jax.Array
+    angular_momentum: jax.Array
+    step_t: jax.Array
+    step_h: jax.Array
+    newton_iterations: jax.Array
+    krylov_iterations: jax.Array
+    residual: jax.Array
+    rejections: jax.Array
+    n_saved: jax.Array
+    n_steps: jax.Array
+    status_code: jax.Array
+    integrator: str = eqx.field(static=True, default="")
+    end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
+
+    @property
+    def status(self):
+        return STATUS[int(self.status_code)]
+
+    def trimmed(self):
+        """Drop the unused tail of the preallocated buffers (host side)."""
+        ns, nt = int(self.n_saved), int(self.n_steps)
+        frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
+                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
+        steps = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "residual", "rejections")
+        out = self
+        for name in frames:
+            if getattr(self, name) is not None:
+                out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:ns])
+        for name in steps:
+            out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:nt])
+        return out
+
+    def state(self, i=-1) -> State:
+        return State(self.x[i], self.p[i], None if self.gamma is None else self.gamma[i])
+
+
+def initial_solution(scene, state=None, t0=0.0, velocity=None) -> Solution:
+    """A `Solution` of one frame and no step: `state` (default: the scene's initial
+    state) at `t0`, with its diagnostics and the full internal variable; `velocity`
+    (default: that of the momenta) is its `end_velocity`, the first step's predictor
+    velocity. What a results file commits before the first step is computed."""
+    state = scene.initial_state() if state is None else state
+    diag, v = _initial_diagnostics(scene, state)
+    v = v if velocity is None else jnp.asarray(velocity, dtype=v.dtype)
+    one = lambda a: None if a is None else jnp.asarray(a)[None]  # noqa: E731
+    zf, zi = jnp.zeros(0), jnp.zeros(0, dtype=int)
+    return Solution(
+        t=one(float(t0)), x=one(state.x), p=one(state.p), gamma=one(state.gamma), dissipated=one(0.0),
+        external_work=one(0.0), **{k: one(v_) for k, v_ in diag.items()}, step_t=zf, step_h=zf,
+        newton_iterations=zi, krylov_iterations=zi, residual=zf, rejections=zi, n_saved=jnp.asarray(1),
+        n_steps=jnp.asarray(0), status_code=jnp.asarray(DONE), end_velocity=v)
+
+
+@eqx.filter_jit
+def _initial_diagnostics(scene, state):
+    return scene.diagnostics(state), scene.velocity(state.p)
