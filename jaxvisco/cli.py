@@ -426,9 +426,9 @@ def _plot(args):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxvisco._results import read_results
+    import jaxvisco as jv
 
-    r = read_results(args.results)
+    r = jv.read_results(args.results)
     out = args.out or os.path.splitext(args.results)[0] + ".png"
     t, H = r["t"], r["energy"]
     D = r.get("dissipated", np.zeros_like(H))

@@ -4,9 +4,20 @@ Import from tests with ``from helpers import fd_check, random_spd, ...`` (pytest
 ``tests`` folder on ``sys.path``; the folder has no ``__init__.py``).
 """
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+def subprocess_env():
+    """Environment for a jaxvisco subprocess: the tests' cheap XLA optimization, unbuffered
+    output (progress lines arrive as they are printed)."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
 
 
 # ----------------------------------------------------------------- finite differences

@@ -23,6 +23,8 @@ import jaxvisco as jv
 from jaxvisco import ResultsWriter, read_restart, read_results
 from jaxvisco.cli import main
 
+from helpers import subprocess_env
+
 NH = dict(lam=30000.0, mu=7500.0)
 
 
@@ -204,16 +206,9 @@ def test_cli_unreadable_mesh_and_results(tmp_path, capsys):
     assert "not a jaxvisco results file" in capsys.readouterr().err
 
 
-def _env():
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
 def test_cli_bad_input_subprocess(tmp_path):
     p = subprocess.run([sys.executable, "-m", "jaxvisco.cli", "run", "--lam", "-5"], cwd=tmp_path,
-                       capture_output=True, text=True, timeout=120, env=_env(), check=False)
+                       capture_output=True, text=True, timeout=120, env=subprocess_env(), check=False)
     assert p.returncode == 2
     assert p.stderr.strip() == "jaxvisco: error: --lam must be positive, got -5.0."
 
@@ -360,7 +355,7 @@ def test_cli_resume_errors(full_and_split, capsys):
 def _start_run(path, t_end):
     cmd = [sys.executable, "-m", "jaxvisco.cli", "run", "--t-end", str(t_end), "--dt", "0.1", "--chunk", "3",
            "--out", str(path)]
-    return subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=_env(),
+    return subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=subprocess_env(),
                             cwd=os.path.dirname(path))
 
 
