@@ -465,6 +465,7 @@ def _plot(args):
 def build_parser():
     p = argparse.ArgumentParser(prog="jaxvisco", description="Finite-strain viscoelastodynamics with "
                                 "energy-consistent Galerkin time elements (Gross & Betsch 2005).")
+    p.add_argument("--version", action="version", version=f"jaxvisco {_version()}")
     sub = p.add_subparsers(dest="command", metavar="{paper,run,plot}")
     sub.required = True
 
@@ -511,6 +512,12 @@ def build_parser():
     pl.add_argument("--out", default=None, help="PNG file (default: beside the results file)")
     pl.set_defaults(func=_plot)
     return p
+
+
+def _version():
+    from jaxvisco import __version__
+
+    return __version__
 
 
 def main(argv=None):

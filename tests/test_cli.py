@@ -9,6 +9,7 @@ import h5py
 import numpy as np
 import pytest
 
+import jaxvisco
 from jaxvisco.cli import chunk_size, main, parse_schedule
 
 
@@ -19,6 +20,13 @@ def test_help(sub, capsys):
         main(argv)
     assert e.value.code == 0
     assert "usage: jaxvisco" in capsys.readouterr().out
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxvisco {jaxvisco.__version__}"
 
 
 def test_schedule_and_chunks():
