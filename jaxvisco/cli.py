@@ -411,16 +411,19 @@ def _run(args):
     return 0
 
 
-def _plot(args):
-    import matplotlib
+def momentum_drift(values):
+    """`values` (n,) or (n, d) over the frames minus their initial value: ``J(t) - J(0)``."""
+    values = np.asarray(values, dtype=float)
+    return values - values[:1]
 
-    matplotlib.use("Agg")
+
+def plot_figure(r, title=""):
+    """The `jaxvisco plot` figure of the results dict `r` (`read_results`): H and H +
+    dissipated, the energy balance error, and the drift of the linear and angular
+    momentum from their initial values (conserved quantities are shown as drifts, without
+    axis offset notation, so round-off is not mistaken for motion)."""
     import matplotlib.pyplot as plt
 
-    from jaxvisco._results import read_results
-
-    r = read_results(args.results)
-    out = args.out or os.path.splitext(args.results)[0] + ".png"
     t, H = r["t"], r["energy"]
     D = r.get("dissipated", np.zeros_like(H))
     H0 = H[0] if len(H) else 1.0
@@ -434,28 +437,41 @@ def _plot(args):
     err = np.abs(H - H0 + D) / abs(H0)
     ax.semilogy(t, np.maximum(err, 1e-17))
     ax.set_title("energy balance error |H - H0 + D| / H0")
-    ax = axs[1, 0]
-    L = r.get("linear_momentum")
-    if L is not None:
-        for i in range(L.shape[1]):
-            ax.plot(t, L[:, i], label="L_" + "xyz"[i])
-        ax.legend()
-    ax.set_title("linear momentum")
-    ax = axs[1, 1]
-    J = r.get("angular_momentum")
-    if J is not None:
-        if J.ndim == 1:
-            ax.plot(t, J, label="J_z")
+    for ax, key, sym, name in ((axs[1, 0], "linear_momentum", "L", "linear"),
+                               (axs[1, 1], "angular_momentum", "J", "angular")):
+        ax.set_title(f"{name} momentum drift {sym} − {sym}(0)")
+        values = r.get(key)
+        if values is None or len(values) == 0:
+            continue
+        values = np.asarray(values, dtype=float)
+        drift = momentum_drift(values)
+        if values.ndim == 1:  # 2D angular momentum: J_z
+            values, drift, comps = values[:, None], drift[:, None], "z"
         else:
-            for i in range(J.shape[1]):
-                ax.plot(t, J[:, i], label="J_" + "xyz"[i])
-        ax.legend()
-    ax.set_title("angular momentum")
+            comps = "xyz"[:values.shape[1]]
+        for i, c in enumerate(comps):
+            ax.plot(t, drift[:, i], label=f"{sym}_{c} − {sym}_{c}(0),  {sym}_{c}(0) = {values[0, i]:.10g}")
+        ax.ticklabel_format(axis="y", useOffset=False)
+        ax.legend(fontsize=8)
     for a in axs.flat:
         a.set_xlabel("t")
-    fig.suptitle(f"{os.path.basename(args.results)}: {r['attrs'].get('integrator', '')} ({r['attrs'].get('status', '')})",
-                 fontsize=9)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout()
+    return fig
+
+
+def _plot(args):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxvisco._results import read_results
+
+    r = read_results(args.results)
+    out = args.out or os.path.splitext(args.results)[0] + ".png"
+    fig = plot_figure(r, f"{os.path.basename(args.results)}: {r['attrs'].get('integrator', '')} "
+                         f"({r['attrs'].get('status', '')})")
     fig.savefig(out, dpi=110)
     plt.close(fig)
     print(f"wrote {out}")

@@ -76,6 +76,37 @@ def test_plot(run_file, tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_plot_shows_momentum_drift(run_file):
+    """The momentum panels plot J(t) - J(0) and L(t) - L(0), with J(0) and L(0) in the
+    legend and no axis offset notation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxvisco._results import read_results
+    from jaxvisco.cli import plot_figure
+
+    r = read_results(run_file)
+    fig = plot_figure(r)
+    try:
+        axes = {a.get_title(): a for a in fig.axes}
+        for title, key, sym in (("linear momentum drift L − L(0)", "linear_momentum", "L"),
+                                ("angular momentum drift J − J(0)", "angular_momentum", "J")):
+            ax = axes[title]
+            ref = np.asarray(r[key]).reshape(len(r["t"]), -1)
+            lines = ax.get_lines()
+            assert len(lines) == ref.shape[1]
+            for i, line in enumerate(lines):
+                np.testing.assert_array_equal(line.get_xdata(), r["t"])
+                np.testing.assert_array_equal(line.get_ydata(), ref[:, i] - ref[0, i])
+                assert line.get_ydata()[0] == 0.0
+                assert f"{sym}_{'xyz'[i] if ref.shape[1] > 1 else 'z'}(0) = {ref[0, i]:.10g}" in line.get_label()
+            assert ax.yaxis.get_major_formatter().get_useOffset() is False
+    finally:
+        plt.close(fig)
+
+
 def test_bad_dt_in_process(capsys, tmp_path):
     assert main(["run", "--dt", "-1", "--out", str(tmp_path / "x.h5")]) == 2
     err = capsys.readouterr().err
