@@ -248,7 +248,7 @@ def _paper(args):
     styles = {"cG1": "tab:red", "eG1": "tab:blue"}
     for scheme_name, sched_name, r in results:
         ls = "-" if sched_name == "schedule" else "--"
-        for a in (ax, az):
+        for a in (ax, az) if scheme_name == "eG1" else (ax,):
             a.plot(r["t"], r["energy"], ls, color=styles[scheme_name], label=f"{scheme_name} {sched_name}")
         if r["status"] == "failed":
             ax.plot(r["t"][-1], r["energy"][-1], "x", color=styles[scheme_name], ms=10, mew=2)
@@ -266,6 +266,7 @@ def _paper(args):
     ax.set_yscale("log")
     ax.set_title("L-shape, refinement 1: cG(1) vs eG(1)")
     ax.legend()
+    az.legend()
     fig.tight_layout()
     fig.savefig(os.path.join(out, "energy.png"), dpi=120)
     plt.close(fig)
