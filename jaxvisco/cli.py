@@ -196,6 +196,40 @@ def make_scene(dim=2, refinement=1, element=None, mesh=None, lam=None, mu=None, 
     return jv.Scene(m, material, p["density"], velocities=v0)
 
 
+# ---------------------------------------------------------------- checks on a finished run
+
+
+def energy_warning(t, energy, dissipated, external_work, label, tol=0.05):
+    """A one-line warning when the integrator created energy, else None.
+
+    The energy created by time t is ``H(t) + dissipated(t) - external_work(t) - H(0)``
+    (zero for an exact energy balance, negative where a scheme dissipates numerically);
+    nothing supplies it. Its maximum over the frames is compared with `tol` times the
+    energy scale ``max(|H(0)|, max |external_work|)``. An energy-stable scheme (eG(k))
+    never warns; cG(k), Newmark or the midpoint rule do with a step too large for them.
+    Frames with non-finite values are ignored.
+    """
+    t, H = np.asarray(t, dtype=float), np.asarray(energy, dtype=float)
+    D = np.broadcast_to(np.asarray(dissipated, dtype=float), H.shape)
+    W = np.broadcast_to(np.asarray(external_work, dtype=float), H.shape)
+    if H.size == 0:
+        return None
+    H0 = H[0]
+    created = H + D - W - H0
+    ok = np.isfinite(created) & np.isfinite(t)
+    if not np.isfinite(H0) or not ok.any():
+        return None
+    scale = max(abs(H0), float(np.max(np.abs(W[ok]))))
+    i = int(np.flatnonzero(ok)[np.argmax(created[ok])])
+    if scale == 0.0 or not created[i] > tol * scale:
+        return None
+    rose = f"H rose {H[i] / H0:.3g}-fold" if H0 > 0 else "H rose"
+    unit = "|H0|" if scale == abs(H0) else "max |external work|"
+    return (f"{label}: {rose} from H0 = {H0:.6g} to {H[i]:.6g} at t = {t[i]:.6g}; the integrator created an energy "
+            f"of {created[i]:.3g} ({created[i] / scale:.3g} x {unit}) that neither the loads' work nor the dissipation "
+            "supplies, so the step is likely too large for this scheme (eG(k) is energy-stable).")
+
+
 # ---------------------------------------------------------------- subcommands
 
 
@@ -244,6 +278,7 @@ def _paper(args):
             print(f"{scheme_name:4s} {sched_txt:16s} status={r['status']:11s} H0={r['energy'][0]:.6g} "
                   f"H_end={r['energy'][-1]:.6g} (t={r['t_last']:.4g}) steps={r['steps']} wall={r['wall']:.1f}s",
                   flush=True)
+            _warn_energy(path, label)
     fig, (ax, az) = plt.subplots(1, 2, figsize=(12, 5))
     styles = {"cG1": "tab:red", "eG1": "tab:blue"}
     for scheme_name, sched_name, r in results:
@@ -273,6 +308,18 @@ def _paper(args):
     if not args.quiet:
         print(f"wrote {out}/energy.png and {len(results)} results files", file=sys.stderr)
     return 0
+
+
+def _warn_energy(path, label):
+    """Print `energy_warning` for the results file `path` to stderr, if it warns."""
+    from jaxvisco._results import read_results
+
+    r = read_results(path)
+    H = r["energy"]
+    msg = energy_warning(r["t"], H, r.get("dissipated", np.zeros_like(H)), r.get("external_work", np.zeros_like(H)),
+                         label)
+    if msg is not None:
+        print(f"jaxvisco: warning: {msg}", file=sys.stderr, flush=True)
 
 
 _RESUMABLE = ("t_end", "quiet", "resume")
