@@ -35,7 +35,8 @@ class Scene(eqx.Module):
     - `velocities`: initial nodal velocities (default zero); momenta are $p_0 = M v_0$.
     - `gamma`: initial internal variable (n_cells, nq, 3, 3) (default identity: virgin).
     - `load`, `load_time`: dead nodal loads `load` (n_nodes, dim) scaled by the scalar
-      function `load_time(t)` (default 1); none for free motion.
+      function `load_time(t)` (default 1); none for free motion. `load_time` is traced
+      by JAX: write it with `jax.numpy` (`jnp.where(t < 3.0, 1.0, 0.0)`, not a Python `if`).
     - `fixed`: Dirichlet conditions: a boolean mask (n_nodes, dim) of position components
       held at their initial values (default: none; free motion).
     - `mass`: `"consistent"` (default) or `"lumped"` (HRZ diagonal scaling).
@@ -91,6 +92,8 @@ class Scene(eqx.Module):
         self.load = None if load is None else _field("load", load, shape, None)
         if load_time is not None and load is None:
             raise ValueError("load_time was given without a load.")
+        if load_time is not None:
+            _check_load_time(load_time)
         self.load_time = load_time
 
     @property
@@ -187,6 +190,41 @@ def _check_orientation(JxW, tol=1e-8):
         raise ValueError(f"element {e} is {kind}: det J * w = {worst[e]:.6g} at a quadrature point (typical "
                          f"{typical:.6g}, accepted > {tol:g} * typical); check its node order (Mesh.validate() "
                          "reports more).")
+
+
+_LOAD_TIME_RULE = "load_time must be a JAX-traceable function of one scalar time t returning a scalar"
+_LOAD_TIME_FIX = "e.g. `lambda t: jnp.where(t < 3.0, 1.0, 0.0)` instead of `lambda t: 1.0 if t < 3 else 0.0`"
+
+
+def _check_load_time(load_time):
+    """Trace `load_time` once on an abstract scalar time (nothing is computed): reject a
+    function that JAX cannot trace, or whose value is not a real scalar, here rather than
+    deep inside `simulate`."""
+    if not callable(load_time):
+        raise TypeError(f"load_time must be a function of t, got {type(load_time).__name__} {load_time!r}.")
+    try:
+        out = jax.eval_shape(load_time, jax.ShapeDtypeStruct((), jnp.float64))
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+            jax.errors.TracerIntegerConversionError) as e:
+        raise ValueError(f"load_time could not be traced by JAX ({type(e).__name__}: {_first_line(e)}). "
+                         f"{_LOAD_TIME_RULE}: t is a tracer, so Python `if`, `float()`, `math` or numpy on t are not "
+                         f"allowed; write it with jax.numpy, {_LOAD_TIME_FIX}.") from e
+    except Exception as e:
+        raise ValueError(f"load_time(t) failed on a traced scalar t ({type(e).__name__}: {_first_line(e)}). "
+                         f"{_LOAD_TIME_RULE}, {_LOAD_TIME_FIX}.") from e
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        n = len(jax.tree_util.tree_leaves(out))
+        raise ValueError(f"load_time(t) must return one scalar, got a {type(out).__name__} of {n} values.")
+    if out.shape != ():
+        raise ValueError(f"load_time(t) must return a scalar (shape ()), got shape {out.shape}; the load is scaled by "
+                         "one number at each time.")
+    if not (jnp.issubdtype(out.dtype, jnp.floating) or jnp.issubdtype(out.dtype, jnp.integer) or out.dtype == bool):
+        raise ValueError(f"load_time(t) must return a real scalar, got dtype {out.dtype}.")
+
+
+def _first_line(e):
+    lines = str(e).strip().splitlines()
+    return lines[0] if lines else ""
 
 
 def _field(name, value, shape, default):

@@ -183,6 +183,40 @@ def make_scene(dim=2, refinement=1, element=None, mesh=None, lam=None, mu=None, 
     return jv.Scene(m, material, p["density"], velocities=v0)
 
 
+# ---------------------------------------------------------------- checks on a finished run
+
+
+def energy_warning(t, energy, dissipated, external_work, label, tol=0.05):
+    """A one-line warning when the integrator created energy, else None.
+
+    The energy created by time t is ``H(t) + dissipated(t) - external_work(t) - H(0)``
+    (zero for an exact energy balance, negative where a scheme dissipates numerically);
+    nothing supplies it. Its maximum over the frames is compared with `tol` times the
+    energy scale ``max(|H(0)|, max |external_work|)``. An energy-stable scheme (eG(k))
+    never warns; cG(k), Newmark or the midpoint rule do with a step too large for them.
+    Frames with non-finite values are ignored.
+    """
+    t, H = np.asarray(t, dtype=float), np.asarray(energy, dtype=float)
+    D = np.broadcast_to(np.asarray(dissipated, dtype=float), H.shape)
+    W = np.broadcast_to(np.asarray(external_work, dtype=float), H.shape)
+    if H.size == 0:
+        return None
+    H0 = H[0]
+    created = H + D - W - H0
+    ok = np.isfinite(created) & np.isfinite(t)
+    if not np.isfinite(H0) or not ok.any():
+        return None
+    scale = max(abs(H0), float(np.max(np.abs(W[ok]))))
+    i = int(np.flatnonzero(ok)[np.argmax(created[ok])])
+    if scale == 0.0 or not created[i] > tol * scale:
+        return None
+    rose = f"H rose {H[i] / H0:.3g}-fold" if H0 > 0 else "H rose"
+    unit = "|H0|" if scale == abs(H0) else "max |external work|"
+    return (f"{label}: {rose} from H0 = {H0:.6g} to {H[i]:.6g} at t = {t[i]:.6g}; the integrator created an energy "
+            f"of {created[i]:.3g} ({created[i] / scale:.3g} x {unit}) that neither the loads' work nor the dissipation "
+            "supplies, so the step is likely too large for this scheme (eG(k) is energy-stable).")
+
+
 # ---------------------------------------------------------------- subcommands
 
 
@@ -237,11 +271,12 @@ def _paper(args):
             print(f"{scheme_name:4s} {sched_txt:16s} status={r['status']:11s} H0={r['energy'][0]:.6g} "
                   f"H_end={r['energy'][-1]:.6g} (t={r['t_last']:.4g}) steps={r['steps']} wall={r['wall']:.1f}s",
                   flush=True)
+            _warn_energy(path, label)
     fig, (ax, az) = plt.subplots(1, 2, figsize=(12, 5))
     styles = {"cG1": "tab:red", "eG1": "tab:blue"}
     for scheme_name, sched_name, r in results:
         ls = "-" if sched_name == "schedule" else "--"
-        for a in (ax, az):
+        for a in (ax, az) if scheme_name == "eG1" else (ax,):
             a.plot(r["t"], r["energy"], ls, color=styles[scheme_name], label=f"{scheme_name} {sched_name}")
         if r["status"] == "failed":
             ax.plot(r["t"][-1], r["energy"][-1], "x", color=styles[scheme_name], ms=10, mew=2)
@@ -259,12 +294,25 @@ def _paper(args):
     ax.set_yscale("log")
     ax.set_title("L-shape, refinement 1: cG(1) vs eG(1)")
     ax.legend()
+    az.legend()
     fig.tight_layout()
     fig.savefig(os.path.join(out, "energy.png"), dpi=120)
     plt.close(fig)
     if not args.quiet:
         print(f"wrote {out}/energy.png and {len(results)} results files", file=sys.stderr)
     return 0
+
+
+def _warn_energy(path, label):
+    """Print `energy_warning` for the results file `path` to stderr, if it warns."""
+    import jaxvisco as jv
+
+    r = jv.read_results(path)
+    H = r["energy"]
+    msg = energy_warning(r["t"], H, r.get("dissipated", np.zeros_like(H)), r.get("external_work", np.zeros_like(H)),
+                         label)
+    if msg is not None:
+        print(f"jaxvisco: warning: {msg}", file=sys.stderr, flush=True)
 
 
 _RESUMABLE = ("t_end", "quiet", "resume")
@@ -410,6 +458,7 @@ def _run(args):
     H = saved["energy"]
     print(f"{integrator.name}: status={status} H0={H[0]:.8g} H_end={H[-1]:.8g} t={saved['t'][-1]:.6g} "
           f"steps={len(saved['step_t'])} (this call {r['steps']}) wall={r['wall']:.1f}s -> {args.out}", flush=True)
+    _warn_energy(args.out, integrator.name)
     if status == "failed":
         raise jv.SolverError(f"{integrator.name}: the step after t = {r['t_last']:.6g} did not converge; "
                              f"results up to it are in {args.out}", r["t_last"], r["state"], None)
@@ -420,16 +469,19 @@ def _run(args):
     return 0
 
 
-def _plot(args):
-    import matplotlib
+def momentum_drift(values):
+    """`values` (n,) or (n, d) over the frames minus their initial value: ``J(t) - J(0)``."""
+    values = np.asarray(values, dtype=float)
+    return values - values[:1]
 
-    matplotlib.use("Agg")
+
+def plot_figure(r, title=""):
+    """The `jaxvisco plot` figure of the results dict `r` (`read_results`): H and H +
+    dissipated, the energy balance error, and the drift of the linear and angular
+    momentum from their initial values (conserved quantities are shown as drifts, without
+    axis offset notation, so round-off is not mistaken for motion)."""
     import matplotlib.pyplot as plt
 
-    import jaxvisco as jv
-
-    r = jv.read_results(args.results)
-    out = args.out or os.path.splitext(args.results)[0] + ".png"
     t, H = r["t"], r["energy"]
     D = r.get("dissipated", np.zeros_like(H))
     H0 = H[0] if len(H) else 1.0
@@ -443,28 +495,41 @@ def _plot(args):
     err = np.abs(H - H0 + D) / abs(H0)
     ax.semilogy(t, np.maximum(err, 1e-17))
     ax.set_title("energy balance error |H - H0 + D| / H0")
-    ax = axs[1, 0]
-    L = r.get("linear_momentum")
-    if L is not None:
-        for i in range(L.shape[1]):
-            ax.plot(t, L[:, i], label="L_" + "xyz"[i])
-        ax.legend()
-    ax.set_title("linear momentum")
-    ax = axs[1, 1]
-    J = r.get("angular_momentum")
-    if J is not None:
-        if J.ndim == 1:
-            ax.plot(t, J, label="J_z")
+    for ax, key, sym, name in ((axs[1, 0], "linear_momentum", "L", "linear"),
+                               (axs[1, 1], "angular_momentum", "J", "angular")):
+        ax.set_title(f"{name} momentum drift {sym} − {sym}(0)")
+        values = r.get(key)
+        if values is None or len(values) == 0:
+            continue
+        values = np.asarray(values, dtype=float)
+        drift = momentum_drift(values)
+        if values.ndim == 1:  # 2D angular momentum: J_z
+            values, drift, comps = values[:, None], drift[:, None], "z"
         else:
-            for i in range(J.shape[1]):
-                ax.plot(t, J[:, i], label="J_" + "xyz"[i])
-        ax.legend()
-    ax.set_title("angular momentum")
+            comps = "xyz"[:values.shape[1]]
+        for i, c in enumerate(comps):
+            ax.plot(t, drift[:, i], label=f"{sym}_{c} − {sym}_{c}(0),  {sym}_{c}(0) = {values[0, i]:.10g}")
+        ax.ticklabel_format(axis="y", useOffset=False)
+        ax.legend(fontsize=8)
     for a in axs.flat:
         a.set_xlabel("t")
-    fig.suptitle(f"{os.path.basename(args.results)}: {r['attrs'].get('integrator', '')} ({r['attrs'].get('status', '')})",
-                 fontsize=9)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout()
+    return fig
+
+
+def _plot(args):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import jaxvisco as jv
+
+    r = jv.read_results(args.results)
+    out = args.out or os.path.splitext(args.results)[0] + ".png"
+    fig = plot_figure(r, f"{os.path.basename(args.results)}: {r['attrs'].get('integrator', '')} "
+                         f"({r['attrs'].get('status', '')})")
     fig.savefig(out, dpi=110)
     plt.close(fig)
     print(f"wrote {out}")
@@ -474,6 +539,7 @@ def _plot(args):
 def build_parser():
     p = argparse.ArgumentParser(prog="jaxvisco", description="Finite-strain viscoelastodynamics with "
                                 "energy-consistent Galerkin time elements (Gross & Betsch 2005).")
+    p.add_argument("--version", action="version", version=f"jaxvisco {_version()}")
     sub = p.add_subparsers(dest="command", metavar="{paper,run,plot}")
     sub.required = True
 
@@ -526,6 +592,12 @@ def build_parser():
     pl.add_argument("--out", default=None, help="PNG file (default: beside the results file)")
     pl.set_defaults(func=_plot)
     return p
+
+
+def _version():
+    from jaxvisco import __version__
+
+    return __version__
 
 
 def main(argv=None):

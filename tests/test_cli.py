@@ -9,7 +9,8 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxvisco.cli import chunk_size, main, parse_schedule
+import jaxvisco
+from jaxvisco.cli import chunk_size, energy_warning, main, parse_schedule
 
 
 @pytest.mark.parametrize("sub", [None, "paper", "run", "plot"])
@@ -19,6 +20,13 @@ def test_help(sub, capsys):
         main(argv)
     assert e.value.code == 0
     assert "usage: jaxvisco" in capsys.readouterr().out
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxvisco {jaxvisco.__version__}"
 
 
 def test_schedule_and_chunks():
@@ -66,6 +74,64 @@ def test_plot(run_file, tmp_path):
     png = tmp_path / "p.png"
     assert main(["plot", str(run_file), "--out", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_plot_shows_momentum_drift(run_file):
+    """The momentum panels plot J(t) - J(0) and L(t) - L(0), with J(0) and L(0) in the
+    legend and no axis offset notation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxvisco._results import read_results
+    from jaxvisco.cli import plot_figure
+
+    r = read_results(run_file)
+    fig = plot_figure(r)
+    try:
+        axes = {a.get_title(): a for a in fig.axes}
+        for title, key, sym in (("linear momentum drift L − L(0)", "linear_momentum", "L"),
+                                ("angular momentum drift J − J(0)", "angular_momentum", "J")):
+            ax = axes[title]
+            ref = np.asarray(r[key]).reshape(len(r["t"]), -1)
+            lines = ax.get_lines()
+            assert len(lines) == ref.shape[1]
+            for i, line in enumerate(lines):
+                np.testing.assert_array_equal(line.get_xdata(), r["t"])
+                np.testing.assert_array_equal(line.get_ydata(), ref[:, i] - ref[0, i])
+                assert line.get_ydata()[0] == 0.0
+                assert f"{sym}_{'xyz'[i] if ref.shape[1] > 1 else 'z'}(0) = {ref[0, i]:.10g}" in line.get_label()
+            assert ax.yaxis.get_major_formatter().get_useOffset() is False
+    finally:
+        plt.close(fig)
+
+
+def test_energy_warning_on_synthetic_runs():
+    t = np.linspace(0.0, 24.0, 241)
+    # cG-like: H grows by orders of magnitude while a little is dissipated
+    H = 3.2e3 * np.exp(t / 3.0)
+    msg = energy_warning(t, H, np.linspace(0.0, 10.0, t.size), np.zeros_like(t), "cG1_schedule")
+    assert msg is not None and "\n" not in msg
+    assert msg.startswith("cG1_schedule: H rose 2.98e+03-fold from H0 = 3200")
+    assert "at t = 24" in msg and "too large for this scheme" in msg and "eG(k) is energy-stable" in msg
+    # eG-like: H decays, exactly balanced by the dissipation (to round-off): no warning
+    He = 3.2e3 * (0.5 + 0.5 * np.exp(-t / 5.0))
+    assert energy_warning(t, He, 3.2e3 - He + 1e-9, np.zeros_like(t), "eG1") is None
+    # a numerically dissipative scheme (H falls, nothing recorded as dissipated): no warning
+    assert energy_warning(t, He, np.zeros_like(t), np.zeros_like(t), "Newmark") is None
+    # energy supplied by a load is not created energy
+    W = np.linspace(0.0, 500.0, t.size)
+    assert energy_warning(t, 3.2e3 + W, np.zeros_like(t), W, "loaded") is None
+    # the peak is reported where it happens, even if H falls again; below 5 % no warning
+    bump = 3.2e3 * (1.0 + 0.2 * np.exp(-((t - 10.0) ** 2)))
+    assert "to 3840 at t = 10" in energy_warning(t, bump, np.zeros_like(t), np.zeros_like(t), "bump")
+    small = 3.2e3 * (1.0 + 0.04 * np.exp(-((t - 10.0) ** 2)))
+    assert energy_warning(t, small, np.zeros_like(t), np.zeros_like(t), "small") is None
+    # a diverged last frame (NaN) is ignored
+    Hn = H.copy()
+    Hn[-1] = np.nan
+    assert "at t = 23.9" in energy_warning(t, Hn, np.zeros_like(t), np.zeros_like(t), "nan")
 
 
 def test_bad_dt_in_process(capsys, tmp_path):
