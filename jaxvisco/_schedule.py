@@ -32,12 +32,12 @@ class StepTo:
             raise ValueError(f"StepTo needs at least two times (a start and one step end), got shape {ts.shape}.")
         if not np.all(np.isfinite(ts)):
             i = int(np.flatnonzero(~np.isfinite(ts))[0])
-            raise ValueError(f"StepTo times must be finite, got ts[{i}] = {ts[i]!r}.")
+            raise ValueError(f"StepTo times must be finite, got ts[{i}] = {float(ts[i])!r}.")
         steps = np.diff(ts)
         if not np.all(steps > 0):
             i = int(np.flatnonzero(~(steps > 0))[0])
-            raise ValueError(f"StepTo times must increase strictly, got ts[{i}] = {ts[i]!r} then "
-                             f"ts[{i + 1}] = {ts[i + 1]!r}.")
+            raise ValueError(f"StepTo times must increase strictly, got ts[{i}] = {float(ts[i])!r} then "
+                             f"ts[{i + 1}] = {float(ts[i + 1])!r}.")
         ts.setflags(write=False)
         self.ts = ts
 
@@ -101,7 +101,7 @@ def step_times(t0, t_end, dt):
         ts = dt.ts
         for name, value, ref in (("t0", t0, ts[0]), ("t_end", t_end, ts[-1])):
             if value is not None and float(value) != float(ref):
-                raise ValueError(f"{name} = {value!r} disagrees with the StepTo times ({name} = {ref!r}); give "
+                raise ValueError(f"{name} = {value!r} disagrees with the StepTo times ({name} = {float(ref)!r}); give "
                                  f"{name}=None or the same time.")
         return np.diff(ts), np.array(ts)
     t0 = 0.0 if t0 is None else float(t0)

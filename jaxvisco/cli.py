@@ -155,9 +155,8 @@ def make_scene(dim=2, refinement=1, element=None, mesh=None, lam=None, mu=None, 
     import jax.numpy as jnp
 
     import jaxvisco as jv
-    from jaxvisco.scenes._lshape import PAPER
 
-    p = dict(PAPER)
+    p = dict(jv.scenes.PAPER)
     for k, v in dict(lam=lam, mu=mu, density=density, eta_dev=eta_dev, eta_vol=eta_vol).items():
         if v is not None:
             if not (v > 0 and math.isfinite(v)) and not (k.startswith("eta") and v == math.inf):

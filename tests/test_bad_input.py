@@ -1,6 +1,8 @@
 """Bad input that used to fail deep inside `simulate` (issue 15): a `load_time` that JAX
 cannot trace or that does not return a scalar is rejected when the scene is built."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -65,3 +67,69 @@ def test_scene_with_load_time_under_vmap_grad_jit():
     np.testing.assert_allclose(jax.jit(total_force)(2.0), expected[2], rtol=1e-14)
     d = 8 * (np.sin(0.5) + np.sin(1.0) + 2.0 * (0.25 * np.cos(0.5) + 0.5 * np.cos(1.0)))
     np.testing.assert_allclose(jax.grad(total_force)(2.0), d, rtol=1e-12)
+
+
+# ------------------------------------------------------------------ schedules
+
+
+@pytest.mark.parametrize("dt, t_end, pattern", [
+    ([(0.2, 0.1), (0.1, 0.05)], 0.3, r"schedule times must increase: piece 1 ends at t_until = 0.1 after piece 0 "
+                                     r"ended at 0.2"),
+    ([(20.0, 0.1), (30.0, 1.0)], 40.0, r"the dt schedule ends at t = 30, before t_end = 40: extend its last piece "
+                                       r"\(e.g. \(40, 1\)\), or give float\('inf'\)"),
+    ([(float("inf"), 0.1), (3.0, 1.0)], 4.0, r"piece 0 has t_until = inf; accepted: finite times, and inf for the "
+                                             r"last piece only"),
+    ([(1.0, 0.0)], 1.0, r"dt must be positive and finite, got dt = 0.0 in schedule piece 0"),
+])
+def test_bad_schedule(dt, t_end, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        jv.StepTo.from_schedule(0.0, t_end, dt)
+    scene = jv.Scene(_square(), jv.NeoHooke(lam=1.0, mu=1.0), 1.0)
+    with pytest.raises(ValueError, match=pattern):  # simulate checks before it compiles anything
+        jv.simulate(scene, jv.eG(1), t_end=t_end, dt=dt)
+
+
+def test_schedule_times_exact():
+    """Step end times are t0 + m h within a piece and the piece's end exactly, never a sum."""
+    _, ts = jv._schedule.step_times(0.0, 2.0, 0.1)
+    assert ts[-1] == 2.0 and len(ts) == 21
+    np.testing.assert_array_equal(ts[:-1], 0.1 * np.arange(20))
+    _, ts = jv._schedule.step_times(0.0, 25.0, [(20.0, 0.1), (float("inf"), 1.0)])
+    assert ts[200] == 20.0 and ts[-1] == 25.0 and np.array_equal(ts[201:], 20.0 + np.arange(1, 6))
+    steps = jv.StepTo.from_schedule(0.0, 0.3, 0.1)
+    assert steps.ts[-1] == 0.3 and len(steps) == 3
+    with pytest.raises(ValueError, match=r"StepTo times must increase strictly, got ts\[1\] = 0.2 then ts\[2\] = 0.2"):
+        jv.StepTo([0.0, 0.2, 0.2])
+    with pytest.raises(ValueError, match=r"t0 = 1.0 disagrees with the StepTo times"):
+        jv._schedule.step_times(1.0, None, jv.StepTo([0.0, 0.5]))
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--schedule", "20:0.1,10:1.0", "--t-end", "30"], "--schedule '20:0.1,10:1.0' ends at t = 10, before --t-end 30"),
+    (["--schedule", "20:0.1,10:1.0", "--t-end", "10"], "--schedule '20:0.1,10:1.0': schedule times must increase"),
+    (["--schedule", "1:0.1", "--t-end", "2"], "add a piece that reaches it, e.g. '1:0.1,2:0.1'"),
+    (["--commit-every", "-1"], "--commit-every must be a number of seconds >= 0"),
+])
+def test_cli_bad_schedule(argv, needle, capsys, tmp_path):
+    from jaxvisco.cli import main
+
+    assert main(["run", *argv, "--out", str(tmp_path / "x.h5"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jaxvisco: error:") and needle in err, err
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_cli_refuses_to_overwrite(tmp_path, capsys):
+    from jaxvisco.cli import main
+
+    out = tmp_path / "x.h5"
+    out.write_bytes(b"precious")
+    assert main(["run", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"results file {str(out)!r} exists; pass --overwrite to replace it" in err, err
+    assert out.read_bytes() == b"precious"
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "eG1_large.h5").write_bytes(b"precious")
+    assert main(["paper", "--quick", "--out", str(tmp_path / "p"), "--quiet"]) == 2
+    assert "eG1_large.h5' exists; pass --overwrite" in capsys.readouterr().err
+    assert sorted(os.listdir(tmp_path / "p")) == ["eG1_large.h5"]
