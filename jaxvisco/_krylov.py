@@ -42,13 +42,14 @@ def gmres(matvec, precond, b, rtol, max_steps):
         j, V, Z, H, cs, sn, g = c
         z = Minv(V[j])
         w = A(z)
-        # Modified Gram–Schmidt against the basis so far (rows > j are zero).
+        # Modified Gram–Schmidt against the j + 1 basis vectors so far: the loops run
+        # over the rows in use only (bounds that depend on j), not over all m rows.
         def mgs(i, carry):
             w, h = carry
-            hij = jnp.where(i <= j, jnp.dot(V[i], w), 0.0)
+            hij = jnp.dot(V[i], w)
             return w - hij * V[i], h.at[i].set(hij)
 
-        w, hcol = jax.lax.fori_loop(0, m, mgs, (w, jnp.zeros(m + 1)))
+        w, hcol = jax.lax.fori_loop(0, j + 1, mgs, (w, jnp.zeros(m + 1)))
         hnext = jnp.linalg.norm(w)
         hcol = hcol.at[j + 1].set(hnext)
         V = V.at[j + 1].set(w / jnp.where(hnext > 0, hnext, 1.0))
@@ -57,11 +58,9 @@ def gmres(matvec, precond, b, rtol, max_steps):
         # Apply the previous Givens rotations to the new column, then a new one.
         def rot(i, h):
             a, bb = h[i], h[i + 1]
-            new_a = jnp.where(i < j, cs[i] * a + sn[i] * bb, a)
-            new_b = jnp.where(i < j, -sn[i] * a + cs[i] * bb, bb)
-            return h.at[i].set(new_a).at[i + 1].set(new_b)
+            return h.at[i].set(cs[i] * a + sn[i] * bb).at[i + 1].set(-sn[i] * a + cs[i] * bb)
 
-        hcol = jax.lax.fori_loop(0, m, rot, hcol)
+        hcol = jax.lax.fori_loop(0, j, rot, hcol)
         a, bb = hcol[j], hcol[j + 1]
         r = jnp.hypot(a, bb)
         c_, s_ = jnp.where(r > 0, a / r, 1.0), jnp.where(r > 0, bb / r, 0.0)
