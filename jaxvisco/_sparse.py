@@ -1,17 +1,30 @@
 """Sparse direct factorization on the host, callable from compiled JAX code.
 
 XLA on CPU has no sparse LU, so the assembled tangent of the position block is factored
-by SuperLU (scipy) through `jax.pure_callback`. A factorization lives in a small host
-cache and is referred to by an integer token that travels in the compiled loop's carry:
-this is what lets one factorization be reused across Newton iterations and time steps.
-A singular matrix gives the token -1 and solves with it return NaN, which the Newton
-loop treats as a failed step.
+by SuperLU (scipy) on the host. A factorization lives in a small host cache and is
+referred to by an integer token that travels in the compiled loop's carry: this is what
+lets one factorization be reused across Newton iterations and time steps. A singular
+matrix gives the token -1 and solves with it return NaN, which the Newton loop treats as
+a failed step.
+
+How compiled code reaches the host: by default through two XLA foreign-function targets
+(`jaxvisco/_ffi/hostlu.cc`, built by ``pip install .``) that hand their buffers to
+`_host_call` here. They are referred to by name, so JAX's persistent compilation cache
+stores the programs that use them; with `jax.pure_callback` (the fallback when the
+extension is missing, or with ``JAXVISCO_HOST_LU=callback``) JAX refuses to cache a
+program ("uses host callbacks") and every process recompiles the time loop. Both paths
+run the same SuperLU code on the same thread and give identical results. A pattern is
+named in the program by a hash of its sparsity pattern (`HostLU.key`), so a cached
+program finds its pattern again in a new process.
 """
 
 import collections
 import concurrent.futures
 import functools
+import hashlib
 import itertools
+import os
+import weakref
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +33,27 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
+
+try:
+    from ._ffi import _hostlu
+except ImportError:  # built without the extension: the pure_callback path
+    _hostlu = None
+
+BACKENDS = ("ffi", "callback")
+_REGISTRY = weakref.WeakValueDictionary()  # HostLU.key -> HostLU
+
+
+def backend():
+    """The host LU path compiled into new programs: "ffi" (cacheable, the default where
+    the extension is built) or "callback" (`jax.pure_callback`; also forced with the
+    environment variable ``JAXVISCO_HOST_LU=callback``)."""
+    choice = os.environ.get("JAXVISCO_HOST_LU", "ffi" if _hostlu is not None else "callback")
+    if choice not in BACKENDS:
+        raise ValueError(f"JAXVISCO_HOST_LU must be one of {BACKENDS}, got {choice!r}.")
+    if choice == "ffi" and _hostlu is None:
+        raise ValueError("JAXVISCO_HOST_LU=ffi, but jaxvisco was installed without its extension "
+                         "(jaxvisco._ffi._hostlu); reinstall with a C++ compiler, or use JAXVISCO_HOST_LU=callback.")
+    return choice
 
 
 class HostLU:
@@ -34,6 +68,9 @@ class HostLU:
         self._indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // n, minlength=n))]).astype(np.int32)
         self.n = n
         self.nnz = len(uniq)
+        digest = hashlib.blake2b(np.int64(n).tobytes() + rows.tobytes() + cols.tobytes(), digest_size=8).digest()
+        self.key = int.from_bytes(digest, "little") & (2**63 - 1)
+        _REGISTRY[self.key] = self
         self._cache = collections.OrderedDict()
         self._cache_size = cache_size
         self._max_bytes = max_bytes
@@ -101,11 +138,37 @@ def _on_worker(fn):
     return run
 
 
+def _host_call(op, key, token, src, dst):
+    """What the FFI targets call (with the GIL): factor (op 0) the values in `src` and
+    write the token to `dst`, or solve (op 1; op 2 transposed) with `token` for the
+    right-hand side `src` into `dst`. `src`, `dst`: memoryviews of XLA's buffers, valid
+    during the call only."""
+    host = _REGISTRY.get(key)
+    if host is None:
+        raise RuntimeError(f"jaxvisco: no sparsity pattern with key {key} in this process (the compiled program "
+                           "outlived its pattern); call jax.clear_caches() and run again.")
+    if op == 0:
+        data = np.frombuffer(src, dtype=np.float64)
+        np.frombuffer(dst, dtype=np.int64)[0] = _on_worker(host.factor)(data)
+    else:
+        b = np.frombuffer(src, dtype=np.float64)
+        np.frombuffer(dst, dtype=np.float64)[:] = _on_worker(host.solve)(token, b, trans=op == 2)
+
+
+if _hostlu is not None:
+    _hostlu.set_callable(_host_call)
+    jax.ffi.register_ffi_target("jaxvisco_lu_factor", _hostlu.factor_target(), platform="cpu")
+    jax.ffi.register_ffi_target("jaxvisco_lu_solve", _hostlu.solve_target(), platform="cpu")
+
+
 def lu_factor(host: HostLU, data):
     """Factor the matrix with COO values `data`; returns an integer token."""
     data = jax.lax.stop_gradient(data)
-    return jax.pure_callback(_on_worker(host.factor), jax.ShapeDtypeStruct((), jnp.int64), data,
-                             vmap_method="sequential")
+    out = jax.ShapeDtypeStruct((), jnp.int64)
+    if backend() == "ffi":
+        return jax.ffi.ffi_call("jaxvisco_lu_factor", out, vmap_method="sequential")(
+            jnp.asarray(data, jnp.float64), key=np.int64(host.key))
+    return jax.pure_callback(_on_worker(host.factor), out, data, vmap_method="sequential")
 
 
 def lu_solve(host: HostLU, token, b, trans=False):
@@ -120,9 +183,12 @@ def lu_solve(host: HostLU, token, b, trans=False):
 
 
 def _lu_solve_impl(token, b, *, host, trans):
+    out = jax.ShapeDtypeStruct(b.shape, b.dtype)
+    if backend() == "ffi":
+        return jax.ffi.ffi_call("jaxvisco_lu_solve", out, vmap_method="sequential")(
+            token, b, key=np.int64(host.key), trans=np.int64(trans))
     return jax.pure_callback(
-        _on_worker(functools.partial(host.solve, trans=trans)), jax.ShapeDtypeStruct(b.shape, b.dtype),
-        token, b, vmap_method="sequential",
+        _on_worker(functools.partial(host.solve, trans=trans)), out, token, b, vmap_method="sequential",
     )
 
 

@@ -608,6 +608,10 @@ def main(argv=None):
 
     args = build_parser().parse_args(argv)
     try:
+        jv.enable_compilation_cache()  # JAXVISCO_CACHE_DIR=DIR elsewhere, =off to disable
+    except OSError as e:
+        print(f"jaxvisco: warning: no compilation cache ({e}); every run compiles afresh", file=sys.stderr)
+    try:
         return args.func(args)
     except (ValueError, TypeError, FileNotFoundError, OSError, jv.SolverError, _CLIError) as e:
         msg = " ".join(str(e).split())

@@ -5,6 +5,10 @@ os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 ).strip()
 
+# The jaxvisco command turns on JAX's persistent compilation cache in the user's cache
+# directory; tests stay hermetic (tests that need a cache give their own directory).
+os.environ["JAXVISCO_CACHE_DIR"] = "off"
+
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)

@@ -84,7 +84,7 @@ def test_plot_shows_momentum_drift(run_file):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxvisco._results import read_results
+    from jaxvisco import read_results
     from jaxvisco.cli import plot_figure
 
     r = read_results(run_file)

@@ -57,6 +57,7 @@ class ResultsWriter:
         self.durable = bool(durable)
         self.dropped_nonfinite = False
         self._offset = dict(dissipated=0.0, external_work=0.0)
+        self._t_last = -np.inf  # time of the last committed frame
         mesh = getattr(scene, "mesh", scene)
         self.scene = scene if mesh is not scene else None
         self.f = None
@@ -111,6 +112,8 @@ class ResultsWriter:
                 self._commit()
             else:
                 self.n_commits = c.n_commits
+            if self.n_frames:
+                self._t_last = float(self.f["time"][self.n_frames - 1])
             for k in self._offset:
                 ds = self.f.get("diagnostics/" + k)
                 if ds is not None and self.n_frames:
@@ -231,11 +234,12 @@ class ResultsWriter:
         if n_ok < len(t):
             self.dropped_nonfinite = True
             self.f.attrs["status"] = "failed"
-            # keep the statistics of the steps that ended at or before the last finite frame
-            keep = steps["step_t"] <= (t[n_ok - 1] if n_ok else -np.inf)
-            steps = {k: v[keep] for k, v in steps.items()}
             t, x, p, g = t[:n_ok], x[:n_ok], p[:n_ok], None if g is None else g[:n_ok]
             diag = {k: v[:n_ok] for k, v in diag.items()}
+        # The statistics of the steps up to the last frame written: later steps (of a run
+        # that failed between saved frames) left no state to restart from.
+        keep = steps["step_t"] <= (t[-1] if n_ok else self._t_last)
+        steps = {k: v[keep] for k, v in steps.items()}
         n0, m0 = self.n_frames, self.n_steps
         if n_ok == 0 and len(steps["step_t"]) == 0:
             self._flush()
@@ -256,6 +260,7 @@ class ResultsWriter:
                 t=float(t[-1]), n_frames=n0 + n_ok, n_steps=n_steps))
             for k in self._offset:
                 self._offset[k] = float(diag[k][-1])
+            self._t_last = float(t[-1])
             if self.xdmf_path:
                 for j in range(n_ok):
                     for field, value in zip(XDMF_FIELDS, (x[j], x[j] - self.points, p[j])):
@@ -268,8 +273,8 @@ class ResultsWriter:
             extend_xdmf(self.xdmf_path, self.path, self.f, n0, self.n_frames)
 
     def close(self, status=None):
-        """Set the final `status` (if given), flush and close. A file that never
-        committed a frame is still moved to its name (it then holds no frame)."""
+        """Set the final `status` (if given), flush and close. A new file that never
+        committed a frame is removed (an existing file it was to replace stays)."""
         if self.f:
             if status is not None:
                 self.f.attrs["status"] = "failed" if (self.dropped_nonfinite and status == "done") else status
@@ -277,10 +282,8 @@ class ResultsWriter:
             self.f.close()
             self.f = None
             if self._partial is not None:
-                os.replace(self._partial, self.path)
+                os.remove(self._partial)
                 self._partial = None
-                if self.xdmf_path:
-                    write_xdmf(self.xdmf_path, self.path)
 
     def __enter__(self):
         return self
