@@ -41,8 +41,8 @@ def default_cache_dir():
 def enable_compilation_cache(path=None):
     """Keep compiled programs on disk (JAX's persistent compilation cache), so that a new
     process does not compile the time loop again: the paper's L-shape, eG(1), first
-    `simulate` call 26.6 s cold, 5.5 s from the cache in a second process (2-core CPU,
-    including building the scene).
+    `simulate` call 17.1 s cold, 3.2-3.7 s from the cache in later processes (2-core
+    CPU, quiet; what remains is mostly tracing the program).
 
     `path`: the cache directory (default `default_cache_dir()`, which honours
     ``JAXVISCO_CACHE_DIR``; ``JAXVISCO_CACHE_DIR=off`` turns it off). Call it once,
