@@ -80,7 +80,7 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
     `should_stop()` is asked after every chunk; when true the run ends "interrupted".
 
     Returns a dict: `status`, `steps` (taken), `newton` (total iterations), `wall`,
-    `state` (last state), `t_last`, `energy_last`, `commits`.
+    `state` (last state), `t_last`.
     """
     import jaxvisco as jv
 
@@ -92,7 +92,7 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
     start = time.perf_counter()
     if writer is not None and writer.n_frames == 0:
         writer.write_initial_state(float(ts[0]), state, v)
-    status, i, newton, per_step, commits, H = "done", 0, 0, None, 0, float("nan")
+    status, i, newton, per_step = "done", 0, 0, None
     if not quiet:
         print(f"{label}: {n} steps; frame 0 written, the first chunk compiles (~10-60 s)", file=stream, flush=True)
     while i < n:
@@ -108,7 +108,6 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
         per_step = (time.perf_counter() - t_call) / m  # the first call also compiles: an overestimate
         if writer is not None:
             writer.append(sol, skip_first=True, gamma=save_gamma)
-            commits += 1
         ns = int(len(np.asarray(sol.step_t)))
         i += ns
         its = np.asarray(sol.newton_iterations)
@@ -126,8 +125,7 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
             break
     state = jv.State(np.asarray(state.x), np.asarray(state.p), None if state.gamma is None else np.asarray(state.gamma))
     return dict(status=status, steps=i, newton=newton, wall=time.perf_counter() - start, state=state,
-                t_last=float(ts[i]) if status != "failed" else float(np.asarray(sol.t)[-1]), energy_last=H,
-                commits=commits)
+                t_last=float(ts[i]) if status != "failed" else float(np.asarray(sol.t)[-1]))
 
 
 # ---------------------------------------------------------------- scenes and integrators
