@@ -100,8 +100,7 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
     if max_steps is not None:
         if int(max_steps) < n_active:
             raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
-        hs = np.concatenate([hs, np.ones(int(max_steps) - n_active)])
-        te = np.concatenate([te, te[-1] + np.arange(1, int(max_steps) - n_active + 1)])
+        hs, te = _padded(hs, te, int(max_steps))
     state0 = scene.initial_state() if initial_state is None else initial_state
     if initial_state is not None:
         ref = dict(x=scene.x0, p=scene.x0, gamma=scene.gamma0)
@@ -128,12 +127,9 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
         # step for the derivative, a few more for Newton when the segment is re-run).
         position_pattern(scene.disc.cells, integrator.k, scene.disc.n_nodes, scene.dim, scene.fixed).reserve(
             64 + 8 * m * int(save_every))
-        n_pad = n_seg * m * int(save_every) - n_active
-        hs_pad = np.concatenate([hs[:n_active], np.ones(n_pad)])
-        te_pad = np.concatenate([te[:n_active], te[n_active - 1] + np.arange(1, n_pad + 1)])
+        hs_pad, te_pad = _padded(hs[:n_active], te[:n_active], n_seg * m * int(save_every))
         sol = run_scan(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs_pad),
-                       jnp.asarray(te_pad),
-                       jnp.asarray(n_active), int(save_every), bool(save_gamma), m, n_seg, v0, use_v0,
+                       jnp.asarray(te_pad), jnp.asarray(n_active), int(save_every), bool(save_gamma), m, n_seg, v0, use_v0,
                        int(n_active))
         return _finish(sol, integrator, 0, throw)
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
@@ -141,6 +137,13 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
                int(max_halvings), v0, use_v0)
     return _finish(sol, integrator, int(max_halvings), throw)
+
+
+def _padded(hs, te, n):
+    """Step sizes and end times extended to `n` entries by unit steps that the compiled
+    loops skip (they only fix the shapes, so runs of different lengths share a program)."""
+    extra = n - len(hs)
+    return np.concatenate([hs, np.ones(extra)]), np.concatenate([te, te[-1] + np.arange(1, extra + 1)])
 
 
 def _finish(sol, integrator, max_halvings, throw):

@@ -268,7 +268,7 @@ def _paper(args):
             print(f"{scheme_name:4s} {sched_txt:16s} status={r['status']:11s} H0={r['energy'][0]:.6g} "
                   f"H_end={r['energy'][-1]:.6g} (t={r['t_last']:.4g}) steps={r['steps']} wall={r['wall']:.1f}s",
                   flush=True)
-            _warn_energy(path, label)
+            _warn_energy(saved, label)
     fig, (ax, az) = plt.subplots(1, 2, figsize=(12, 5))
     styles = {"cG1": "tab:red", "eG1": "tab:blue"}
     for scheme_name, sched_name, r in results:
@@ -300,11 +300,8 @@ def _paper(args):
     return 0
 
 
-def _warn_energy(path, label):
-    """Print `energy_warning` for the results file `path` to stderr, if it warns."""
-    import jaxvisco as jv
-
-    r = jv.read_results(path)
+def _warn_energy(r, label):
+    """Print `energy_warning` for the results `r` (`read_results`) to stderr, if it warns."""
     H = r["energy"]
     msg = energy_warning(r["t"], H, r.get("dissipated", np.zeros_like(H)), r.get("external_work", np.zeros_like(H)),
                          label)
@@ -455,7 +452,7 @@ def _run(args):
     H = saved["energy"]
     print(f"{integrator.name}: status={status} H0={H[0]:.8g} H_end={H[-1]:.8g} t={saved['t'][-1]:.6g} "
           f"steps={len(saved['step_t'])} (this call {r['steps']}) wall={r['wall']:.1f}s -> {args.out}", flush=True)
-    _warn_energy(args.out, integrator.name)
+    _warn_energy(saved, integrator.name)
     if status == "failed":
         raise jv.SolverError(f"{integrator.name}: the step after t = {r['t_last']:.6g} did not converge; "
                              f"results up to it are in {args.out}", r["t_last"], r["state"], None)

@@ -26,14 +26,15 @@ def open_results(path, mode="r"):
     return f
 
 
-def _frames(f, path):
-    """Committed frames and steps of an open file (a dict of arrays)."""
+def _frames(f, path, last_only=False):
+    """Committed frames and steps of an open file (a dict of arrays); with `last_only`,
+    the last committed frame alone (arrays with one row) and no steps."""
     c = committed(f)
     out = dict(points=np.asarray(f["mesh/points"]), cells=np.asarray(f["mesh/cells"]),
                cell_type=str(f["mesh/cells"].attrs.get("cell_type", "")))
     keys = [("t", "time"), ("x", "nodal/x"), ("p", "nodal/p"), ("gamma", "qp/gamma")]
     keys += [(k, "diagnostics/" + k) for k in FRAME_KEYS]
-    for key, name in keys + [(k, "steps/" + k) for k in STEP_KEYS]:
+    for key, name in keys + ([] if last_only else [(k, "steps/" + k) for k in STEP_KEYS]):
         n = c.n_steps if name.startswith("steps/") else c.n_frames
         if name not in f:
             if n and key in ("t", "x", "p"):
@@ -43,7 +44,7 @@ def _frames(f, path):
             continue
         if f[name].shape[0] < n:
             raise ValueError(f"{path!r} is damaged: it commits {n} rows but /{name} holds {f[name].shape[0]}.")
-        out[key] = np.asarray(f[name][:n])
+        out[key] = np.asarray(f[name][max(n - 1, 0) if last_only else 0:n])
     return out
 
 
@@ -69,7 +70,7 @@ def check_restart(f, path, frames=None):
     **Returns:** a dict ``x, p, gamma, velocity`` (arrays, None where absent), ``t``,
     ``n_frames``, ``n_steps``. **Raises** `ValueError` naming each mismatch.
     """
-    frames = _frames(f, path) if frames is None else frames
+    frames = _frames(f, path, last_only=True) if frames is None else frames
     c = committed(f)
     if c.n_frames == 0:
         raise ValueError(f"results file {path!r} holds no committed frame to restart from (the run stopped "
@@ -87,13 +88,13 @@ def check_restart(f, path, frames=None):
         bad.append(f"the restart record is of frame {rec['n_frames'] - 1}, the last committed frame is {last}")
     if rec["n_steps"] != c.n_steps:
         bad.append(f"the restart record follows {rec['n_steps']} steps, the file commits {c.n_steps}")
-    if rec["t"] != float(frames["t"][last]):
-        bad.append(f"restart t = {rec['t']!r}, last frame t = {float(frames['t'][last])!r}")
+    if rec["t"] != float(frames["t"][-1]):
+        bad.append(f"restart t = {rec['t']!r}, last frame t = {float(frames['t'][-1])!r}")
     for name, key in (("x", "x"), ("p", "p"), ("gamma", "gamma")):
         a, b = rec[name], frames.get(key)
         if a is None or b is None:
             continue
-        b = b[last]
+        b = b[-1]
         if a.shape != b.shape:
             bad.append(f"restart {name} has shape {a.shape}, frame {last} {b.shape}")
         elif not np.array_equal(a, b):
@@ -137,7 +138,7 @@ def read_restart(path) -> Restart:
 
     path = os.fspath(path)
     with open_results(path) as f:
-        frames = _frames(f, path)
+        frames = _frames(f, path, last_only=True)
         rec = check_restart(f, path, frames)
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     try:
