@@ -17,6 +17,11 @@ from ._generators import rectangle as rectangle
 from ._identify import Identification as Identification
 from ._identify import identify as identify
 from ._identify import with_parameters as with_parameters
+from ._io import Restart as Restart
+from ._io import ResultsWriter as ResultsWriter
+from ._io import read_restart as read_restart
+from ._io import read_results as read_results
+from ._io import save as save
 from ._materials import NeoHooke as NeoHooke
 from ._materials import ReeseGovindjee as ReeseGovindjee
 from ._materials import paper_material as paper_material
@@ -24,11 +29,6 @@ from ._mesh import Mesh as Mesh
 from ._newton import NewtonKrylov as NewtonKrylov
 from ._ode import SemiDiscrete as SemiDiscrete
 from ._ode import semidiscrete as semidiscrete
-from ._io import Restart as Restart
-from ._io import ResultsWriter as ResultsWriter
-from ._io import read_restart as read_restart
-from ._io import read_results as read_results
-from ._io import save as save
 from ._resume import resume as resume
 from ._scene import Scene as Scene
 from ._scene import State as State

@@ -21,15 +21,14 @@ steps are skipped, the last good state is kept, and `status` reports "failed".
 
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._config import jit
 from ._implicit import solve_step_implicit
 from ._solution import DONE, FAILED, RUNNING, Solution
 from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent
-
 
 
 def layout(n_steps, save_every, checkpoint_every=None):
@@ -41,7 +40,7 @@ def layout(n_steps, save_every, checkpoint_every=None):
     return m, n_seg
 
 
-@eqx.filter_jit
+@jit
 def run_scan(scene, scheme, solver, state0, t0, hs, te, n_active, save_every, save_gamma, m, n_seg, v0, use_v0, n_keep):
     """hs, te: (n_seg * m * save_every,) step sizes and end times, padded; steps >= n_active are skipped.
     n_keep (static): the schedule's step count; the padding is cut from the outputs so a

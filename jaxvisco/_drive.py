@@ -5,11 +5,11 @@ evolution part of `point_kernel`), so `drive` isolates the time discretization o
 constitutive law: useful for calibrating materials and for convergence studies.
 """
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._config import jit
 from ._materials import ReeseGovindjee
 from ._tensor import small_solve, sym_to_vec, vec_to_sym
 from ._time_element import AbstractTimeElement, eG
@@ -43,7 +43,7 @@ def drive(material: ReeseGovindjee, F, ts, integrator: AbstractTimeElement = eG(
     return _drive(material, F, jnp.asarray(ts_np), integrator, gamma0, rtol, max_iterations)
 
 
-@eqx.filter_jit
+@jit
 def _drive(material, F, ts, scheme, gamma0, rtol, max_iterations):
     k = scheme.k
     m = scheme.matrices()[0]

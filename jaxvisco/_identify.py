@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ._config import jit
 from ._newton import NewtonKrylov
 from ._simulate import simulate
 
@@ -157,7 +158,7 @@ def observe_checked(observe, sol, shape):
     return pred
 
 
-@eqx.filter_jit
+@jit
 def _step(st, scene, data, scale, z, state):
     """One optimizer iteration (compiled once per problem layout and reused)."""
     loss = functools.partial(_loss, st, scene, data, scale)

@@ -15,11 +15,14 @@ consistent mass matrix ẋ = M⁻¹p couples every node to every other (M⁻¹ i
 the sparse Jacobian needs a lumped (diagonal) mass: `Scene(..., mass="lumped")`.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
+from ._config import compiler_options
 from ._scene import Scene, State, _right_cauchy_green
 from ._space import embed_3d
 from ._tensor import sym_to_vec, vec_to_sym
@@ -58,9 +61,10 @@ class SemiDiscrete:
 
         # The scene is closed over (its arrays become constants): the least call overhead
         # for host-driven solvers that call these thousands of times.
-        self._rhs = jax.jit(lambda t, y: _rhs(scene, t, y, self.lumped))
-        self._energy = jax.jit(lambda y: _energy(scene, y))
-        self._dissipation = jax.jit(lambda y: scene.dissipation_rate(*_xg(scene, y)))
+        jit = functools.partial(jax.jit, compiler_options=compiler_options() or None)
+        self._rhs = jit(lambda t, y: _rhs(scene, t, y, self.lumped))
+        self._energy = jit(lambda y: _energy(scene, y))
+        self._dissipation = jit(lambda y: scene.dissipation_rate(*_xg(scene, y)))
         self.rows = self.cols = None
         if self.lumped:
             self.rows, self.cols = _pattern(scene)
@@ -70,7 +74,7 @@ class SemiDiscrete:
             self._indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // self.n, minlength=self.n))]).astype(
                 np.int32)
             self.nnz = len(uniq)
-            self._jac = jax.jit(lambda t, y: _jac_values(scene, t, y))
+            self._jac = jit(lambda t, y: _jac_values(scene, t, y))
 
     # -- state ---------------------------------------------------------------------
     def pack(self, state: State):

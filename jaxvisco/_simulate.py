@@ -8,21 +8,22 @@ successes; a step that cannot be recovered ends the run with the last good state
 
 from typing import Optional
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._config import jit
 from ._differentiable import layout, run_scan
 from ._newton import NewtonKrylov, solve_step
 from ._scene import Scene, State
-from ._solution import DONE, EQUILIBRIUM, FAILED, RUNNING, Solution, SolverError
 from ._schedule import step_times
+from ._solution import DONE, EQUILIBRIUM, FAILED, RUNNING, Solution, SolverError
 from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent, position_pattern
 from ._tensor import small_solve
 from ._time_element import AbstractTimeElement
 from ._validation import check_finite
+
 
 def relative_kinetic_energy(scene: Scene, x, p):
     """Kinetic energy relative to the best-fitting rigid motion (mass-weighted)."""
@@ -159,7 +160,7 @@ def _finish(sol, integrator, max_halvings, throw):
     return sol
 
 
-@eqx.filter_jit
+@jit
 def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0):
     n_frames = 1 + -(-hs.shape[0] // save_every)
     diag0 = scene.diagnostics(state0)

@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._config import jit
 from ._scene import State
 
 RUNNING, FAILED, EQUILIBRIUM, DONE = 0, 1, 2, 3
@@ -98,6 +99,6 @@ def initial_solution(scene, state=None, t0=0.0, velocity=None) -> Solution:
         n_steps=jnp.asarray(0), status_code=jnp.asarray(DONE), end_velocity=v)
 
 
-@eqx.filter_jit
+@jit
 def _initial_diagnostics(scene, state):
     return scene.diagnostics(state), scene.velocity(state.p)

@@ -21,3 +21,18 @@ def test_lineax_gmres_backend_matches_default():
 def test_unknown_krylov_method_is_rejected():
     with pytest.raises(ValueError, match="krylov must be one of"):
         jv.NewtonKrylov(krylov="cg")
+
+
+def test_compiler_options_follow_the_environment(monkeypatch):
+    """jaxvisco's programs get the CPU option where XLA knows it, none when turned off."""
+    from jaxvisco import _config
+
+    try:
+        _config.compiler_options.cache_clear()
+        monkeypatch.setenv("JAXVISCO_XLA_OPTIONS", "off")
+        assert _config.compiler_options() == {}
+        _config.compiler_options.cache_clear()
+        monkeypatch.delenv("JAXVISCO_XLA_OPTIONS")
+        assert _config.compiler_options() == _config._CPU_OPTIONS
+    finally:
+        _config.compiler_options.cache_clear()

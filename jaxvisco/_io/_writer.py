@@ -25,8 +25,17 @@ import os
 
 import numpy as np
 
-from ._layout import FORMAT, FRAME_DATASETS, FRAME_KEYS, STEP_DATASETS, STEP_KEYS, XDMF_FIELDS, committed, \
-    frame_name, scene_attributes
+from ._layout import (
+    FORMAT,
+    FRAME_DATASETS,
+    FRAME_KEYS,
+    STEP_DATASETS,
+    STEP_KEYS,
+    XDMF_FIELDS,
+    committed,
+    frame_name,
+    scene_attributes,
+)
 from ._read import check_restart, open_results
 from ._xdmf import extend_xdmf, pad3, write_xdmf
 

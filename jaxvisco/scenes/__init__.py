@@ -1,4 +1,4 @@
 """Built-in scenes."""
 
-from ._lshape import lshape as lshape
 from ._lshape import PAPER as PAPER
+from ._lshape import lshape as lshape
