@@ -67,7 +67,7 @@ def part(name, dim, refinement, scheme_name, mass):
         fn, args = (lambda c, u, t: solve_step(solver, scheme, scene, c, u, t)), (ctx, U, tan)
     elif name == "step_outcome":
         def fn(c, u, t):
-            r = jv._newton.NewtonResult(u, jnp.asarray(True), jnp.asarray(1), jnp.asarray(1), jnp.asarray(0.0), t)
+            r = jv._newton.NewtonResult(u, jnp.asarray(True), jnp.asarray(1), jnp.asarray(1), jnp.asarray(0), jnp.asarray(0.0), t)
             return step_outcome(scheme, scene, c, r)
         args = (ctx, U, tan)
     elif name == "diagnostics":

@@ -57,6 +57,7 @@ def case(scene, scheme, solver, n_steps, h=0.1, repeats=5):
         integrator=scheme.name, linear_solver=solver.linear_solver, steps=n_steps, h=h,
         dofs=int(scene.mesh.n_nodes * scene.dim), status=sol.status,
         newton_per_step=float(its.mean()), krylov_per_newton=float(kits.sum() / max(its.sum(), 1)),
+        chord_per_step=float(np.mean(np.asarray(sol.chord_iterations))),
         ms_per_step=1e3 * wall / n_steps, ms_per_step_min=1e3 * best / n_steps, compile_s=first - wall,
         residual_eval_ms=res_med, residual_eval_ms_min=res_min,
         residuals_per_step=best / n_steps / (1e-3 * res_min),

@@ -66,14 +66,15 @@ def run_scan(scene, scheme, solver, state0, t0, hs, te, n_active, save_every, sa
                        dissipated=c["dissipated"] + jnp.where(ok, D, 0.0),
                        work=c["work"] + jnp.where(ok, W, 0.0),
                        status=jnp.where(ok, c["status"], FAILED), n_done=c["n_done"] + ok.astype(int))
-            stats = (r.iterations, r.krylov_iterations, jnp.where(ok, r.residual, jnp.inf))
+            stats = (r.iterations, r.krylov_iterations, r.chord_iterations, jnp.where(ok, r.residual, jnp.inf))
             return out, stats
 
         def skip(c):
-            return c, (jnp.asarray(0), jnp.asarray(0), jnp.asarray(0.0))
+            return c, (jnp.asarray(0), jnp.asarray(0), jnp.asarray(0), jnp.asarray(0.0))
 
-        c, (its, kits, res) = jax.lax.cond(active, attempt, skip, c)
-        return c, dict(step_t=c["t"], step_h=h, newton_iterations=its, krylov_iterations=kits, residual=res,
+        c, (its, kits, chord, res) = jax.lax.cond(active, attempt, skip, c)
+        return c, dict(step_t=c["t"], step_h=h, newton_iterations=its, krylov_iterations=kits,
+                       chord_iterations=chord, residual=res,
                        rejections=jnp.asarray(0))
 
     def frame(c, inp):

@@ -1,5 +1,13 @@
 """The jitted Newton–Krylov loop that solves one time element.
 
+Where the stored tangent fits the step, the step starts with chord iterations on its
+factorization (`_chord`: one residual and one block solve each) and ends there when
+they contract; measured on the 2D L-shape (refinement 4, lumped mass, eG(1), h = 0.1,
+20 steps, same process conditions) 117.6 -> 85-89 ms per step with 8 chord and 0.2
+Newton iterations per step in place of 4 Newton iterations with 2.1 Krylov vectors
+each. Where they do not contract (a new step size, large steps), Newton–Krylov below
+takes over from the last point that did:
+
 Per iteration: one `jax.linearize` of the step residual (its primal is the residual that
 tests convergence and the line search); GMRES (`_krylov.gmres`) on its JVP,
 preconditioned by the exact block solve with a condensed tangent (`_tangent`), carried
@@ -51,6 +59,15 @@ class NewtonKrylov(eqx.Module):
       carried along the body's rigid rotation (`_tangent.schur_solve`), so it stays a good
       preconditioner for many steps; re-forming it costs ~20 residual evaluations, a
       Krylov vector about one (2D L-shape, refinement 4).
+    - `chord`: chord iterations allowed per step before Newton–Krylov (10; 0 disables
+      them). Where the stored tangent fits the step (same h, not stale), each step
+      starts with iterations U <- U - P^{-1} R(U) on the stored factorization
+      P: one residual and one block solve each, no linearization, no Krylov vectors.
+      They go on while the residual (max norm) contracts by `chord_contraction` per
+      iteration and end the step at `rtol`; the first one that contracts less is
+      discarded, and Newton–Krylov continues from the last point that did. They are
+      counted in `Solution.chord_iterations`, not in `newton_iterations`.
+    - `chord_contraction`: the contraction a chord iteration must reach (0.5).
     """
 
     rtol: float = eqx.field(static=True, default=1e-10)
@@ -61,6 +78,8 @@ class NewtonKrylov(eqx.Module):
     refresh_after: int = eqx.field(static=True, default=5)
     line_search: int = eqx.field(static=True, default=8)
     reuse_limit: int = eqx.field(static=True, default=20)
+    chord: int = eqx.field(static=True, default=10)
+    chord_contraction: float = eqx.field(static=True, default=0.5)
 
     def __check_init__(self):
         if self.linear_solver not in _LINEAR_SOLVERS:
@@ -71,6 +90,10 @@ class NewtonKrylov(eqx.Module):
             raise ValueError(f"rtol must lie in (0, 1), got {self.rtol!r}.")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations!r}.")
+        if isinstance(self.chord, bool) or not isinstance(self.chord, int) or self.chord < 0:
+            raise ValueError(f"chord must be an integer >= 0 (0: no chord iterations), got {self.chord!r}.")
+        if not (0.0 < self.chord_contraction < 1.0):
+            raise ValueError(f"chord_contraction must lie in (0, 1), got {self.chord_contraction!r}.")
 
 
 class NewtonResult(eqx.Module):
@@ -78,6 +101,7 @@ class NewtonResult(eqx.Module):
     converged: jax.Array
     iterations: jax.Array
     krylov_iterations: jax.Array
+    chord_iterations: jax.Array
     residual: jax.Array
     tangent: Tangent
 
@@ -196,11 +220,51 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
 
     zero = jax.tree_util.tree_map(jnp.zeros_like, U0)
     R_shape = jax.eval_shape(res, U0)
-    init = dict(U=U0, R=jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), R_shape),
+    U_start, chord_its, chord_done = U0, jnp.asarray(0), jnp.asarray(False)
+    chord_state = None
+    if solver.chord and not direct:
+        chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res)
+        U_start, chord_its, chord_done = chord_state["U"], chord_state["it"], chord_state["done"]
+    init = dict(U=U_start, R=jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), R_shape),
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
                 a=jnp.asarray(0.0), n_ls=jnp.asarray(0), it=jnp.asarray(-1), kits=jnp.asarray(0),
-                tan=tangent, refresh=stale, pending=jnp.asarray(True))
+                tan=tangent, refresh=stale, pending=~chord_done)
     c = jax.lax.while_loop(lambda c: c["pending"], body, init)
+    if chord_state is not None:
+        c = dict(c, norm=jnp.where(chord_done, chord_state["norm"], c["norm"]),
+                 prev=jnp.where(chord_done, chord_state["prev"], c["prev"]),
+                 it=jnp.where(chord_done, 0, c["it"]))
     converged = done(c["norm"], c["prev"])
     tan = eqx.tree_at(lambda t: t.stale, c["tan"], (~converged) | (c["it"] > solver.reuse_limit))
-    return NewtonResult(c["U"], converged, c["it"], c["kits"], c["norm"], tan)
+    return NewtonResult(c["U"], converged, c["it"], c["kits"], chord_its, c["norm"], tan)
+
+
+def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
+    """Chord iterations on the stored factorization: U <- U - P^{-1} R(U), one residual and
+    one block solve each, while the residual contracts by `chord_contraction` per
+    iteration; stops at convergence (rtol, strictly) or hands the last point whose
+    residual decreased over to Newton–Krylov."""
+
+    def cond(c):
+        return c["go"]
+
+    def body(c):
+        R = res(c["Ut"])
+        sx = jnp.where(c["it"] == 0, _scale(ctx, scene, R), c["sx"])
+        norm = _norm(R, sx)
+        contracting = (c["it"] == 0) | (norm <= solver.chord_contraction * c["norm"])
+        better = contracting & jnp.isfinite(norm)
+        U = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), c["Ut"], c["U"])
+        done = better & (norm <= solver.rtol)
+        go = ~done & contracting & (c["it"] < solver.chord) & jnp.isfinite(norm)
+        Ut = jax.lax.cond(
+            go, lambda: _axpy(1.0, schur_solve(scheme, scene, ctx, c["tan"], jax.tree_util.tree_map(jnp.negative, R),
+                                               rotation), c["Ut"]), lambda: c["Ut"])
+        return dict(U=U, Ut=Ut, norm=jnp.where(better, norm, c["norm"]), prev=jnp.where(better, c["norm"], c["prev"]),
+                    sx=sx, it=c["it"] + 1, done=done, go=go, tan=c["tan"])
+
+    init = dict(U=U0, Ut=U0, norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0),
+                it=jnp.asarray(0), done=jnp.asarray(False), go=~stale, tan=tangent)
+    c = jax.lax.while_loop(cond, body, init)
+    # it counts residual evaluations; the solves taken = it - 1 (the last one is unused)
+    return dict(U=c["U"], norm=c["norm"], prev=c["prev"], it=jnp.maximum(c["it"] - 1, 0), done=c["done"])

@@ -204,14 +204,14 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
             return dict(
                 state=pick(new, c["state"]), t=jnp.where(pos == full, t_next, t + pos * (h / full)),
                 v=pick(v_end, c["v"]), tan=r.tangent, level=level, pos=pos,
-                its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
+                its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations, chord=c["chord"] + r.chord_iterations,
                 rej=c["rej"] + jnp.where(ok, 0, 1), D=c["D"] + jnp.where(ok, D, 0.0),
                 W=c["W"] + jnp.where(ok, W, 0.0), res=jnp.maximum(c["res"], jnp.where(ok, r.residual, 0.0)),
                 failed=level > max_halvings,
             )
 
         init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0),
-                    its=jnp.asarray(0), kits=jnp.asarray(0), rej=jnp.asarray(0), D=jnp.asarray(0.0),
+                    its=jnp.asarray(0), kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0), D=jnp.asarray(0.0),
                     W=jnp.asarray(0.0), res=jnp.asarray(0.0), failed=jnp.asarray(False))
         return jax.lax.while_loop(cond, body, init)
 
@@ -240,6 +240,7 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
         steps = dict(step_t=steps["step_t"].at[i].set(a["t"]), step_h=steps["step_h"].at[i].set(hs[i]),
                      newton_iterations=steps["newton_iterations"].at[i].set(a["its"]),
                      krylov_iterations=steps["krylov_iterations"].at[i].set(a["kits"]),
+                     chord_iterations=steps["chord_iterations"].at[i].set(a["chord"]),
                      residual=steps["residual"].at[i].set(a["res"]),
                      rejections=steps["rejections"].at[i].set(a["rej"]))
         return dict(i=i + 1, state=a["state"], t=a["t"], v=a["v"], tan=a["tan"], frames=frames, steps=steps,
@@ -248,7 +249,7 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
 
     frames = write(frame_buffers(), 0, t0, state0, diag0, jnp.asarray(0.0), jnp.asarray(0.0))
     zeros_f, zeros_i = jnp.zeros(hs.shape[0]), jnp.zeros(hs.shape[0], dtype=int)
-    steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i,
+    steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i, chord_iterations=zeros_i,
                  residual=zeros_f, rejections=zeros_i)
     v_init = jnp.where(use_v0, v0, scene.velocity(state0.p))
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene),

@@ -31,8 +31,9 @@ class Solution(eqx.Module):
     Frames (leading axis = saved frame): `t`, `x`, `p`, `gamma` (if asked), `energy` (H),
     `kinetic`, `free_energy`, `dissipated` (cumulative dissipation of the scheme),
     `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`.
-    Steps: `step_t` (end time), `step_h`, `newton_iterations`, `krylov_iterations`,
-    `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
+    Steps: `step_t` (end time), `step_h`, `newton_iterations` (Newton–Krylov
+    iterations), `krylov_iterations`, `chord_iterations` (iterations on the stored
+    factorization, `NewtonKrylov(chord=...)`), `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
     one of "done", "equilibrium", "failed".
     """
 
@@ -52,6 +53,7 @@ class Solution(eqx.Module):
     step_h: jax.Array
     newton_iterations: jax.Array
     krylov_iterations: jax.Array
+    chord_iterations: jax.Array
     residual: jax.Array
     rejections: jax.Array
     n_saved: jax.Array
@@ -69,7 +71,8 @@ class Solution(eqx.Module):
         ns, nt = int(self.n_saved), int(self.n_steps)
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
                   "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
-        steps = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "residual", "rejections")
+        steps = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "chord_iterations", "residual",
+                 "rejections")
         out = self
         for name in frames:
             if getattr(self, name) is not None:
@@ -95,7 +98,7 @@ def initial_solution(scene, state=None, t0=0.0, velocity=None) -> Solution:
     return Solution(
         t=one(float(t0)), x=one(state.x), p=one(state.p), gamma=one(state.gamma), dissipated=one(0.0),
         external_work=one(0.0), **{k: one(v_) for k, v_ in diag.items()}, step_t=zf, step_h=zf,
-        newton_iterations=zi, krylov_iterations=zi, residual=zf, rejections=zi, n_saved=jnp.asarray(1),
+        newton_iterations=zi, krylov_iterations=zi, chord_iterations=zi, residual=zf, rejections=zi, n_saved=jnp.asarray(1),
         n_steps=jnp.asarray(0), status_code=jnp.asarray(DONE), end_velocity=v)
 
 

@@ -1,4 +1,5 @@
-"""Solver options: lineax's GMRES as the Krylov method gives the same steps."""
+"""Solver options: lineax's GMRES as the Krylov method and chord iterations give the same
+steps."""
 
 import numpy as np
 import pytest
@@ -9,13 +10,38 @@ import jaxvisco as jv
 def test_lineax_gmres_backend_matches_default():
     scene = jv.scenes.lshape(dim=2, refinement=1)
     a = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.25)
-    b = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.25, solver=jv.NewtonKrylov(krylov="lineax"))
+    # chord=0: every step runs Newton–Krylov, so every step uses lineax's GMRES.
+    b = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.25, solver=jv.NewtonKrylov(krylov="lineax", chord=0))
     assert b.status == "done" and int(b.n_steps) == 4
     assert np.all(b.krylov_iterations > 0)
     np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-8)
     np.testing.assert_allclose(b.energy, a.energy, rtol=1e-10)
     H, D = np.asarray(b.energy), np.diff(np.asarray(b.dissipated))
     assert np.max(np.abs(np.diff(H) + D)) <= 1e-9 * H[0]
+
+
+def test_chord_iterations_reach_the_newton_solution():
+    """Chord iterations on the stored factorization replace most Newton–Krylov
+    iterations and end at the same steps (to the Newton tolerance), with eG's energy
+    balance intact."""
+    scene = jv.scenes.lshape(dim=2, refinement=1)
+    a = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.1, solver=jv.NewtonKrylov(chord=0))
+    b = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.1)
+    assert a.status == b.status == "done"
+    assert int(np.sum(a.chord_iterations)) == 0 and int(np.sum(b.chord_iterations)) > 0
+    assert int(np.sum(b.newton_iterations)) < int(np.sum(a.newton_iterations))
+    np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(b.energy, a.energy, rtol=1e-10)
+    H, D = np.asarray(b.energy), np.diff(np.asarray(b.dissipated))
+    assert np.max(np.abs(np.diff(H) + D)) <= 1e-9 * H[0]
+
+
+@pytest.mark.parametrize("kwargs, match", [(dict(chord=-1), "chord must be an integer"),
+                                           (dict(chord=True), "chord must be an integer"),
+                                           (dict(chord_contraction=1.0), "chord_contraction must lie")])
+def test_bad_chord_options_are_rejected(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jv.NewtonKrylov(**kwargs)
 
 
 def test_unknown_krylov_method_is_rejected():

@@ -10,8 +10,9 @@ Layout of ``name.h5`` (format 2; ``n`` committed frames, ``N`` nodes, ``d`` = 2 
 - ``/diagnostics/{energy, kinetic, free_energy, dissipated, dissipation_rate,
   external_work}`` (n,), ``linear_momentum`` (n, d), ``angular_momentum`` (n,) in 2D,
   (n, 3) in 3D; ``dissipated`` and ``external_work`` cumulative from frame 0.
-- ``/steps/{step_t, step_h, newton_iterations, krylov_iterations, residual,
-  rejections}`` (s,).
+- ``/steps/{step_t, step_h, newton_iterations, krylov_iterations, chord_iterations,
+  residual, rejections}`` (s,). Files written before ``chord_iterations`` existed lack
+  it; appending to them creates it with zeros for the earlier steps.
 - ``/restart/slot0``, ``/restart/slot1``: two restart records, each ``x``, ``p``,
   ``gamma`` (the full internal variable, if the solution had it), ``velocity`` (the
   next step's predictor velocity, if known) and attributes ``t``, ``n_frames``,
@@ -38,7 +39,8 @@ import numpy as np
 FORMAT = 2
 FRAME_KEYS = ("energy", "kinetic", "free_energy", "dissipated", "dissipation_rate", "external_work",
               "linear_momentum", "angular_momentum")
-STEP_KEYS = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "residual", "rejections")
+STEP_KEYS = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "chord_iterations", "residual",
+             "rejections")
 FRAME_DATASETS = ("time", "nodal/x", "nodal/p", "qp/gamma") + tuple("diagnostics/" + k for k in FRAME_KEYS)
 STEP_DATASETS = tuple("steps/" + k for k in STEP_KEYS)
 XDMF_FIELDS = ("geometry", "displacement", "momentum")

@@ -239,7 +239,9 @@ class ResultsWriter:
         for v in list(diag.values()) + ([] if g is None else [g]):
             finite &= _all_finite(v)
         n_ok = len(t) if finite.all() else int(np.argmin(finite))
-        steps = {k: np.asarray(getattr(sol, k)) for k in STEP_KEYS}
+        steps = {k: np.asarray(getattr(sol, k)) for k in STEP_KEYS if getattr(sol, k, None) is not None}
+        # Statistics a solution does not carry (e.g. chord iterations of an older object) are 0.
+        steps = {k: steps.get(k, np.zeros(len(steps["step_t"]), int)) for k in STEP_KEYS}
         if n_ok < len(t):
             self.dropped_nonfinite = True
             self.f.attrs["status"] = "failed"
