@@ -2,9 +2,13 @@
 
     python benchmarks/step_cost.py [--quick]
 
-Runs eG(1) (and eG(2)) on the 2D L-shape at refinement 1 and 4 and the 3D L-shape at
-refinement 1 with h = 0.1, with both linear solvers, and writes
-benchmarks/results/step_cost.json. Timings are wall clock after compilation (median of
+Runs eG(1) and eG(2) on the 2D L-shape at refinement 1 and 4 (consistent mass, and
+lumped at refinement 4: issue #16's case) and the 3D L-shape at refinement 1 with
+h = 0.1: the default solver (chord iterations, then Newton–Krylov), Newton–Krylov alone
+(`chord=0`, the default before) and, for eG(1), the direct solver. Writes
+benchmarks/results/step_cost.json. `rhs_per_step` is the step's wall time in
+right-hand-side evaluations of the same semi-discrete ODE (`jv.semidiscrete`, lumped
+mass: the unit of issue #16's target). Timings are wall clock after compilation (median of
 repeats); compile time is the first call minus a timed call. Every case runs in its own
 subprocess: in one long-lived process the later cases ran up to 1.6x slower (3D r1 eG(1):
 50 ms/step after ten other cases against 31-34 ms alone).
@@ -17,7 +21,7 @@ import subprocess
 import sys
 import time
 
-from common import jv, machine, write_json  # noqa: I001
+from common import jv, lshape, machine, write_json  # noqa: I001
 
 import jax  # noqa: E402
 from jaxvisco._step import make_context, residual, predictor  # noqa: E402
@@ -39,7 +43,21 @@ def residual_ms(scene, scheme, h):
     return 1e3 * statistics.median(t), 1e3 * min(t)
 
 
-def case(scene, scheme, solver, n_steps, h=0.1, repeats=5):
+def rhs_ms(scene):
+    """Minimum over repeats of one jitted right-hand side of the scene's ODE [ms] (pass a
+    lumped-mass scene: a consistent mass adds CG iterations that are not the physics)."""
+    ode = jv.semidiscrete(scene)
+    y = jax.numpy.asarray(ode.y0)
+    jax.block_until_ready(ode.rhs(0.0, y))
+    t = []
+    for _ in range(50):
+        t0 = time.perf_counter()
+        jax.block_until_ready(ode.rhs(0.0, y))
+        t.append(time.perf_counter() - t0)
+    return 1e3 * min(t)
+
+
+def case(scene, scheme, solver, n_steps, rhs_scene, h=0.1, repeats=5):
     t0 = time.perf_counter()
     sol = jv.simulate(scene, scheme, t_end=n_steps * h, dt=h, solver=solver, save_every=n_steps)
     first = time.perf_counter() - t0
@@ -61,38 +79,44 @@ def case(scene, scheme, solver, n_steps, h=0.1, repeats=5):
         ms_per_step=1e3 * wall / n_steps, ms_per_step_min=1e3 * best / n_steps, compile_s=first - wall,
         residual_eval_ms=res_med, residual_eval_ms_min=res_min,
         residuals_per_step=best / n_steps / (1e-3 * res_min),
+        rhs_eval_ms_min=(r := rhs_ms(rhs_scene)), rhs_per_step=best / n_steps / (1e-3 * r),
     )
 
 
-SCENES = {"2D r1": (2, 1), "2D r4": (2, 4), "3D r1": (3, 1)}
+SCENES = {"2D r1": (2, 1, "consistent"), "2D r4": (2, 4, "consistent"), "2D r4 lumped": (2, 4, "lumped"),
+          "3D r1": (3, 1, "consistent")}
+SOLVERS = {"default": {}, "chord=0": dict(chord=0), "direct": dict(linear_solver="direct")}
+CASES = [(1, "default"), (1, "chord=0"), (1, "direct"), (2, "default"), (2, "chord=0")]
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
-    p.add_argument("--case", default=None, help=argparse.SUPPRESS)  # scene,k,linear_solver,steps (worker)
+    p.add_argument("--case", default=None, help=argparse.SUPPRESS)  # scene,k,solver,steps (worker)
     a = p.parse_args(argv)
     if a.case:
-        name, k, ls, n = a.case.split(",")
-        r = case(jv.scenes.lshape(*SCENES[name]), jv.eG(int(k)), jv.NewtonKrylov(linear_solver=ls), int(n))
-        r["scene"] = name
+        name, k, sv, n = a.case.split(",")
+        dim, ref, mass = SCENES[name]
+        r = case(lshape(dim, ref, mass=mass), jv.eG(int(k)), jv.NewtonKrylov(**SOLVERS[sv]), int(n),
+                 lshape(dim, ref, mass="lumped"))
+        r.update(scene=name, solver=sv)
         print("RESULT " + json.dumps(r), flush=True)
         return
     n = 10 if a.quick else 40
     mach = machine()
     rows = []
     for name in SCENES:
-        for k in (1, 2):
-            if a.quick and k > 1:
+        for k, sv in CASES:
+            if a.quick and (k > 1 or sv == "direct"):
                 continue
-            for ls in ("krylov", "direct"):
-                out = subprocess.run([sys.executable, __file__, "--case", f"{name},{k},{ls},{n}"],
-                                     capture_output=True, text=True, check=True).stdout
-                r = json.loads(next(line[7:] for line in out.splitlines() if line.startswith("RESULT ")))
-                rows.append(r)
-                print(json.dumps(r), flush=True)
+            out = subprocess.run([sys.executable, __file__, "--case", f"{name},{k},{sv},{n}"],
+                                 capture_output=True, text=True, check=True).stdout
+            r = json.loads(next(line[7:] for line in out.splitlines() if line.startswith("RESULT ")))
+            rows.append(r)
+            print(json.dumps(r), flush=True)
     write_json("step_cost.json", dict(machine=mach, settings=dict(
-        quick=a.quick, scheme_solver="eG(1), eG(2); NewtonKrylov defaults with linear_solver krylov | direct",
+        quick=a.quick, scheme_solver="eG(1), eG(2); NewtonKrylov() (chord iterations, then Newton-Krylov), "
+                                     "NewtonKrylov(chord=0), NewtonKrylov(linear_solver='direct')",
         timing="ms_per_step: median of 5 timed runs of n steps; _min: their minimum; residuals_per_step = "
                "ms_per_step_min / residual_eval_ms_min (one jitted residual evaluation, min of 20)"), rows=rows))
 

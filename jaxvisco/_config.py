@@ -74,7 +74,8 @@ _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_IND
 def compiler_options():
     """The XLA options jaxvisco compiles its programs with: the CPU options above where
     this jaxlib knows them (the option is experimental; an XLA without it gets none),
-    none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's defaults)."""
+    none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's defaults). Call it outside any JAX
+    transformation (JAX accepts compile options on top-level programs only)."""
     if os.environ.get("JAXVISCO_XLA_OPTIONS", "").strip().lower() in ("off", "0", "none", "default"):
         return {}
     try:
@@ -84,15 +85,30 @@ def compiler_options():
     return dict(_CPU_OPTIONS)
 
 
+def _top_level():
+    """True outside every JAX trace (jit, grad, vmap, ...): only there may a program carry
+    compile options. Asks a private JAX function; where it is missing, False (XLA's
+    defaults, never an error)."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:
+        return False
+    return bool(trace_state_clean())
+
+
 def jit(fn):
-    """`equinox.filter_jit(fn)` compiled with `compiler_options()`, decided at the first
-    call (importing jaxvisco initializes no JAX backend). `.lower(...)` as filter_jit's."""
-    compiled = []
+    """`equinox.filter_jit(fn)`, compiled with `compiler_options()` when called at top
+    level. Called inside a trace (e.g. `jax.grad` or `jax.jit` of a `simulate` call) it is
+    a plain nested `filter_jit`: the options belong to the outermost program, which the
+    caller compiles. `.lower(...)` as filter_jit's."""
+    variants = {}
 
     def get():
-        if not compiled:
-            compiled.append(eqx.filter_jit(fn, compiler_options=compiler_options() or None))
-        return compiled[0]
+        top = _top_level()
+        if top not in variants:
+            opts = compiler_options() if top else {}
+            variants[top] = eqx.filter_jit(fn, compiler_options=opts or None)
+        return variants[top]
 
     @functools.wraps(fn)
     def call(*args, **kwargs):

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from ._config import compiler_options
+from ._config import _top_level, compiler_options
 from ._scene import Scene, State, _right_cauchy_green
 from ._space import embed_3d
 from ._tensor import sym_to_vec, vec_to_sym
@@ -61,7 +61,7 @@ class SemiDiscrete:
 
         # The scene is closed over (its arrays become constants): the least call overhead
         # for host-driven solvers that call these thousands of times.
-        jit = functools.partial(jax.jit, compiler_options=compiler_options() or None)
+        jit = functools.partial(jax.jit, compiler_options=(compiler_options() if _top_level() else {}) or None)
         self._rhs = jit(lambda t, y: _rhs(scene, t, y, self.lumped))
         self._energy = jit(lambda y: _energy(scene, y))
         self._dissipation = jit(lambda y: scene.dissipation_rate(*_xg(scene, y)))

@@ -62,3 +62,14 @@ def test_compiler_options_follow_the_environment(monkeypatch):
         assert _config.compiler_options() == _config._CPU_OPTIONS
     finally:
         _config.compiler_options.cache_clear()
+
+
+def test_simulate_inside_a_trace_compiles_without_options():
+    """Compile options belong to top-level programs only: `simulate` under `jax.jit`
+    (after a top-level call has fixed the options) runs as a nested program."""
+    import jax
+
+    scene = jv.scenes.lshape(dim=2, refinement=1)
+    a = jv.simulate(scene, jv.eG(1), t_end=0.2, dt=0.1)
+    b = jax.jit(lambda s: jv.simulate(s, jv.eG(1), t_end=0.2, dt=0.1).x)(scene)
+    np.testing.assert_allclose(np.asarray(b)[:3], np.asarray(a.x), rtol=0, atol=1e-10)
