@@ -6,7 +6,7 @@ they contract; measured on the 2D L-shape (refinement 4, lumped mass, eG(1), h =
 20 steps, same process conditions) 117.6 -> 85-89 ms per step with 8 chord and 0.2
 Newton iterations per step in place of 4 Newton iterations with 2.1 Krylov vectors
 each. Where they do not contract (a new step size, large steps), Newton–Krylov below
-takes over from the last point that did:
+takes over from the last point that did.
 
 Per iteration: one `jax.linearize` of the step residual (its primal is the residual that
 tests convergence and the line search); GMRES (`_krylov.gmres`) on its JVP,
@@ -242,8 +242,8 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
 def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
     """Chord iterations on the stored factorization: U <- U - P^{-1} R(U), one residual and
     one block solve each, while the residual contracts by `chord_contraction` per
-    iteration; stops at convergence (rtol, strictly) or hands the last point whose
-    residual decreased over to Newton–Krylov."""
+    iteration; stops at convergence (rtol, strictly) or hands the last point reached by
+    a contracting iteration over to Newton–Krylov."""
 
     def cond(c):
         return c["go"]
@@ -258,13 +258,13 @@ def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
         done = better & (norm <= solver.rtol)
         go = ~done & contracting & (c["it"] < solver.chord) & jnp.isfinite(norm)
         Ut = jax.lax.cond(
-            go, lambda: _axpy(1.0, schur_solve(scheme, scene, ctx, c["tan"], jax.tree_util.tree_map(jnp.negative, R),
+            go, lambda: _axpy(1.0, schur_solve(scheme, scene, ctx, tangent, jax.tree_util.tree_map(jnp.negative, R),
                                                rotation), c["Ut"]), lambda: c["Ut"])
         return dict(U=U, Ut=Ut, norm=jnp.where(better, norm, c["norm"]), prev=jnp.where(better, c["norm"], c["prev"]),
-                    sx=sx, it=c["it"] + 1, done=done, go=go, tan=c["tan"])
+                    sx=sx, it=c["it"] + 1, done=done, go=go)
 
     init = dict(U=U0, Ut=U0, norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0),
-                it=jnp.asarray(0), done=jnp.asarray(False), go=~stale, tan=tangent)
+                it=jnp.asarray(0), done=jnp.asarray(False), go=~stale)
     c = jax.lax.while_loop(cond, body, init)
     # it counts residual evaluations; the solves taken = it - 1 (the last one is unused)
     return dict(U=c["U"], norm=c["norm"], prev=c["prev"], it=jnp.maximum(c["it"] - 1, 0), done=c["done"])

@@ -69,8 +69,11 @@ def _jvp(scheme):
     return eqx.filter_jit(lambda t, d: jax.jvp(loss, (t,), (d,)))
 
 
+# eG(2) (414 s of a 51-minute local suite on 2026-12-01) runs under -m slow; cG(1) and eG(1)
+# keep the reverse-mode identity in CI.
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("scheme", [jv.cG(1), jv.eG(1), jv.eG(2)], ids=["cG1", "eG1", "eG2"])
+@pytest.mark.parametrize("scheme", [jv.cG(1), jv.eG(1), pytest.param(jv.eG(2), marks=pytest.mark.slow)],
+                         ids=["cG1", "eG1", "eG2"])
 def test_reverse_gradient_matches_finite_differences(scheme):
     theta = _theta0()
     g = np.asarray(_grad(scheme)(theta))
