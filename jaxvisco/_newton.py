@@ -256,7 +256,7 @@ def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
         better = contracting & jnp.isfinite(norm)
         U = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), c["Ut"], c["U"])
         done = better & (norm <= solver.rtol)
-        go = ~done & contracting & (c["it"] < solver.chord) & jnp.isfinite(norm)
+        go = better & ~done & (c["it"] < solver.chord)
         Ut = jax.lax.cond(
             go, lambda: _axpy(1.0, schur_solve(scheme, scene, ctx, tangent, jax.tree_util.tree_map(jnp.negative, R),
                                                rotation), c["Ut"]), lambda: c["Ut"])

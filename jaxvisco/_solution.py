@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from ._config import jit
+from ._io._layout import STEP_KEYS
 from ._scene import State
 
 RUNNING, FAILED, EQUILIBRIUM, DONE = 0, 1, 2, 3
@@ -71,13 +72,11 @@ class Solution(eqx.Module):
         ns, nt = int(self.n_saved), int(self.n_steps)
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
                   "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
-        steps = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "chord_iterations", "residual",
-                 "rejections")
         out = self
         for name in frames:
             if getattr(self, name) is not None:
                 out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:ns])
-        for name in steps:
+        for name in STEP_KEYS:
             out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:nt])
         return out
 
