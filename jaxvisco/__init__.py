@@ -5,6 +5,7 @@ jaxvisco computes in float64 and never switches precision behind your back: call
 """
 
 from . import scenes as scenes
+from . import time_functions as time_functions
 from ._batch import sharded_map as sharded_map
 from ._config import enable_compilation_cache as enable_compilation_cache
 from ._config import require_x64 as require_x64

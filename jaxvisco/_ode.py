@@ -158,7 +158,7 @@ def _rhs(scene, t, y, lumped):
     pdot = -scene.internal_force(x, gamma) + scene.external_force(t)
     if scene.fixed is not None:
         mask = jnp.asarray(scene.fixed.array)
-        xdot = jnp.where(mask, 0.0, xdot)
+        xdot = jnp.where(mask, scene.held_velocity(t), xdot)
         pdot = jnp.where(mask, 0.0, pdot)
     parts = [xdot.ravel(), pdot.ravel()]
     if g is not None:

@@ -11,6 +11,7 @@ from ._config import require_x64
 from ._krylov import pcg
 from ._materials import ReeseGovindjee
 from ._space import Discretization, StaticArray
+from ._time_functions import AbstractTimeFunction, Constant
 from ._validation import _concrete, check_finite, check_positive
 
 
@@ -34,11 +35,21 @@ class Scene(eqx.Module):
     - `positions`: initial nodal positions (default: the mesh points, undeformed).
     - `velocities`: initial nodal velocities (default zero); momenta are $p_0 = M v_0$.
     - `gamma`: initial internal variable (n_cells, nq, 3, 3) (default identity: virgin).
-    - `load`, `load_time`: dead nodal loads `load` (n_nodes, dim) scaled by the scalar
-      function `load_time(t)` (default 1); none for free motion. `load_time` is traced
-      by JAX: write it with `jax.numpy` (`jnp.where(t < 3.0, 1.0, 0.0)`, not a Python `if`).
+    - `loads`: dead loads, a sequence of pairs `(force, time)`: nodal forces `force`
+      (n_nodes, dim) scaled by the time function `time` (a `jaxvisco.time_functions`
+      module such as `Step(at=1.0, before=1.0, after=0.0)`, any scalar function of t, or
+      None for 1). The external force is $f_{ext}(t) = \sum_i g_i(t) f_i$. Surface loads
+      become nodal forces with `traction_load`/`pressure_load`. None: free motion.
+    - `load`, `load_time`: one dead load, the same as `loads=[(load, load_time)]`.
+      A plain function of t is traced by JAX: write it with `jax.numpy`
+      (`jnp.where(t < 3.0, 1.0, 0.0)`, not a Python `if`).
     - `fixed`: Dirichlet conditions: a boolean mask (n_nodes, dim) of position components
       held at their initial values (default: none; free motion).
+    - `prescribed`: motion of the held components in time, pairs `(displacement, time)`
+      like `loads`: held components follow $x_0 + \sum_i g_i(t) u_i$ (`displacement`
+      $u_i$ (n_nodes, dim), zero where not held). Start them at rest ($g_i'(0) = 0$, e.g.
+      a `Ramp` or `Table` starting flat): the held nodes start with zero velocity. The work
+      of the reactions is counted in the external work, so the energy balance stays exact.
     - `mass`: `"consistent"` (default) or `"lumped"` (HRZ diagonal scaling).
     - `quadrature_order`: spatial quadrature order (default: the element's full rule).
     """
@@ -50,12 +61,15 @@ class Scene(eqx.Module):
     x0: jax.Array
     v0: jax.Array
     gamma0: Optional[jax.Array]
-    load: Optional[jax.Array]
-    load_time: Optional[Callable] = eqx.field(static=True)
+    loads: Optional[jax.Array]  # (n_loads, n_nodes, dim)
+    load_times: tuple  # one time function per load
+    prescribed: Optional[jax.Array]  # (n_prescribed, n_nodes, dim)
+    prescribed_times: tuple
     fixed: Optional[StaticArray] = eqx.field(static=True)
 
     def __init__(self, mesh, material, density, positions=None, velocities=None, gamma=None,
-                 load=None, load_time=None, fixed=None, mass="consistent", quadrature_order=None):
+                 load=None, load_time=None, fixed=None, mass="consistent", quadrature_order=None, loads=None,
+                 prescribed=None):
         require_x64()
         if not isinstance(material, ReeseGovindjee):
             if not callable(material):
@@ -82,6 +96,21 @@ class Scene(eqx.Module):
             self.fixed = StaticArray(mask) if mask.any() else None
             if self.fixed is not None:
                 self.v0 = jnp.where(mask, 0.0, self.v0)
+        pairs = _load_pairs(prescribed, "prescribed", "displacement")
+        motions = [_field(f"prescribed[{i}] displacement", u, shape, None) for i, (u, _) in enumerate(pairs)]
+        if motions and self.fixed is None:
+            raise ValueError("prescribed motion was given but no component is held: mark the components it moves in "
+                             "`fixed`.")
+        for i, u in enumerate(motions):
+            moving = _concrete(u)
+            if moving is not None:
+                free = np.argwhere((moving != 0) & ~self.fixed.array)
+                if free.size:
+                    a, c = free[0]
+                    raise ValueError(f"prescribed[{i}] displacement is {float(moving[a, c])!r} at node {a}, component {c}, "
+                                     "which is not held; it must be zero where `fixed` is False.")
+        self.prescribed = jnp.stack(motions) if motions else None
+        self.prescribed_times = tuple(_time_function(g) for _, g in pairs)
         if material.has_internal_variable:
             gshape = (self.disc.n_cells, self.disc.n_qp, 3, 3)
             self.gamma0 = _field("gamma", gamma, gshape, jnp.broadcast_to(jnp.eye(3), gshape))
@@ -89,12 +118,17 @@ class Scene(eqx.Module):
             raise ValueError("gamma was given but the material has no internal variable (nonequilibrium=None).")
         else:
             self.gamma0 = None
-        self.load = None if load is None else _field("load", load, shape, None)
         if load_time is not None and load is None:
             raise ValueError("load_time was given without a load.")
-        if load_time is not None:
-            _check_load_time(load_time)
-        self.load_time = load_time
+        pairs = _load_pairs(loads)
+        if load is not None:
+            if pairs:
+                raise ValueError("give either load (with load_time) or loads, not both.")
+            pairs = [(load, load_time)]
+        forces = [_field("load" if loads is None else f"loads[{i}] force", f, shape, None)
+                  for i, (f, _) in enumerate(pairs)]
+        self.loads = jnp.stack(forces) if forces else None
+        self.load_times = tuple(_time_function(g) for _, g in pairs)
 
     @property
     def dim(self):
@@ -104,15 +138,29 @@ class Scene(eqx.Module):
     def has_internal_variable(self):
         return self.material.has_internal_variable
 
+    def held_positions(self, t):
+        r"""Positions of the held components at time t: $x_0 + \sum_i g_i(t) u_i$ (`x0` when
+        nothing moves them); meaningful where `fixed` is True."""
+        return self.x0 + _scaled_sum(self.prescribed, self.prescribed_times, t)
+
+    def held_velocity(self, t):
+        r"""$\sum_i g_i'(t) u_i$: velocity of the held components (zeros when none moves)."""
+        if self.prescribed is None:
+            return jnp.zeros_like(self.x0)
+        return jax.jvp(lambda s: _scaled_sum(self.prescribed, self.prescribed_times, s),
+                       (jnp.asarray(t, dtype=float),), (jnp.ones((), dtype=float),))[1]
+
     def initial_state(self) -> State:
         return State(self.x0, self.disc.mass_matvec(self.v0, self.density), self.gamma0)
 
+    @property
+    def load(self):
+        """The sum of the dead loads at full scale (n_nodes, dim), None for free motion."""
+        return None if self.loads is None else jnp.sum(self.loads, axis=0)
+
     def external_force(self, t):
-        """Nodal dead load at time t (zeros for free motion)."""
-        if self.load is None:
-            return jnp.zeros_like(self.x0)
-        scale = 1.0 if self.load_time is None else self.load_time(t)
-        return scale * self.load
+        r"""Nodal dead load at time t, $\sum_i g_i(t) f_i$ (zeros for free motion)."""
+        return _scaled_sum(self.loads, self.load_times, t, like=self.x0)
 
     # -- diagnostics ---------------------------------------------------------------
     def velocity(self, p, rtol=1e-14):
@@ -220,6 +268,47 @@ def _check_load_time(load_time):
                          "one number at each time.")
     if not (jnp.issubdtype(out.dtype, jnp.floating) or jnp.issubdtype(out.dtype, jnp.integer) or out.dtype == bool):
         raise ValueError(f"load_time(t) must return a real scalar, got dtype {out.dtype}.")
+
+
+class _PlainTimeFunction(AbstractTimeFunction):
+    """A user's function of t, kept static (hashed by identity) like any callable."""
+
+    fn: Callable = eqx.field(static=True)
+
+    def __call__(self, t):
+        return self.fn(t)
+
+
+def _time_function(g):
+    if g is None:
+        return Constant(1.0)
+    if isinstance(g, AbstractTimeFunction):
+        return g
+    _check_load_time(g)
+    return _PlainTimeFunction(g)
+
+
+def _scaled_sum(vectors, times, t, like=None):
+    r"""$\sum_i g_i(t) v_i$ for stacked vectors (n, n_nodes, dim); zeros when None."""
+    if vectors is None:
+        return jnp.zeros_like(like) if like is not None else 0.0
+    scales = jnp.stack([jnp.asarray(g(t), dtype=vectors.dtype) for g in times])
+    return jnp.einsum("i,ind->nd", scales, vectors)
+
+
+def _load_pairs(loads, name="loads", what="force"):
+    if loads is None:
+        return []
+    try:
+        pairs = list(loads)
+    except TypeError:
+        raise TypeError(f"{name} must be a sequence of ({what}, time function) pairs, got {type(loads).__name__}.") \
+            from None
+    for i, item in enumerate(pairs):
+        if not (isinstance(item, (tuple, list)) and len(item) == 2):
+            raise ValueError(f"{name}[{i}] must be a pair ({what} (n_nodes, dim), time function or None), got "
+                             f"{type(item).__name__}{'' if not hasattr(item, '__len__') else f' of length {len(item)}'}.")
+    return pairs
 
 
 def _first_line(e):

@@ -87,7 +87,7 @@ def force_term(scheme, scene, ctx, P):
 
 def external_term(scheme, scene, ctx):
     m, _ = scheme.matrices()
-    if scene.load is None:
+    if scene.loads is None:
         return None
     ts = ctx.t0 + ctx.h * jnp.asarray(m["points"])
     fext = jax.vmap(scene.external_force)(ts)
@@ -97,6 +97,28 @@ def external_term(scheme, scene, ctx):
 def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
     """Weak residual of the time element: momentum equations (k, n, d) in units of
     momentum, evolution law (k, n_cells, nq, 6) dimensionless."""
+    R_x, R_G = _unconstrained_residual(scheme, scene, ctx, U)
+    if scene.fixed is not None:
+        # Held components: the momentum equation is replaced by the constraint, scaled
+        # to momentum units like the rows it replaces.
+        mask = jnp.asarray(scene.fixed.array)[None]
+        gap = ctx.state.x[None] + U.x - held_targets(scheme, scene, ctx)
+        R_x = jnp.where(mask, gap * constraint_scale(scene, ctx.h), R_x)
+    return Unknowns(R_x, R_G)
+
+
+def held_targets(scheme, scene, ctx):
+    """Positions of the held components at the k new time nodes (k, n, d)."""
+    m, _ = scheme.matrices()
+    if scene.prescribed is None:
+        return scene.x0[None]
+    ts = ctx.t0 + ctx.h * jnp.asarray(m["nodes"][1:])
+    return jax.vmap(scene.held_positions)(ts)
+
+
+def _unconstrained_residual(scheme, scene, ctx, U):
+    """The residual with every momentum equation kept (held rows too: there it is the
+    reaction's share, `reaction_work`)."""
     m, _ = scheme.matrices()
     X, F, G = nodal_fields(scheme, scene, ctx, U)
     P, R_G = _over_points(lambda f, g: scheme.point_kernel(scene.material, f, g, ctx.h), F, G)
@@ -107,12 +129,7 @@ def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
     ext = external_term(scheme, scene, ctx)
     if ext is not None:
         R_x = R_x - ext
-    if scene.fixed is not None:
-        # Held components: the momentum equation is replaced by the constraint, scaled
-        # to momentum units like the rows it replaces.
-        mask = jnp.asarray(scene.fixed.array)[None]
-        R_x = jnp.where(mask, (ctx.state.x[None] + U.x - scene.x0[None]) * constraint_scale(scene, ctx.h), R_x)
-    return Unknowns(R_x, None if R_G is None else jnp.moveaxis(R_G, 2, 0))
+    return R_x, None if R_G is None else jnp.moveaxis(R_G, 2, 0)
 
 
 def constraint_scale(scene, h):
@@ -130,14 +147,34 @@ def step_dissipation(scheme, scene, ctx, U):
 
 
 def external_work(scheme, scene, ctx, U):
-    """Work of the dead loads over the step, $\\int x_h' \\cdot f_{ext} d\\alpha$."""
-    if scene.load is None:
-        return jnp.zeros((), dtype=ctx.h.dtype)
+    """Work of the dead loads over the step, $\\int x_h' \\cdot f_{ext} d\\alpha$, plus
+    that of the reactions where held components move (`reaction_work`)."""
+    work = jnp.zeros((), dtype=ctx.h.dtype)
+    if scene.prescribed is not None:
+        work = work + reaction_work(scheme, scene, ctx, U)
+    if scene.loads is None:
+        return work
     m, _ = scheme.matrices()
     Xd = jnp.einsum("lI,Ind->lnd", jnp.asarray(m["D"]), increments(ctx, U))
     ts = ctx.t0 + ctx.h * jnp.asarray(m["points"])
     fext = jax.vmap(scene.external_force)(ts)
-    return jnp.sum(jnp.asarray(m["weights"])[:, None, None] * Xd * fext)
+    return work + jnp.sum(jnp.asarray(m["weights"])[:, None, None] * Xd * fext)
+
+
+def reaction_work(scheme, scene, ctx, U):
+    r"""Work of the reactions on the held components over the step.
+
+    The reactions $r$ close the momentum equations of the held rows:
+    $R_J = h \sum_l W_{Jl} r_l$ ($R$ without the constraint). Their work
+    $\sum_l w_l x_h'(\alpha_l) \cdot r_l$ is, because $x_h'$ is a polynomial of the test
+    space, $\sum_J x_h'(\beta_J) \cdot R_J / h$ with $\beta_J$ the test nodes
+    (`time_element_matrices`' `D_test`): the same identity that makes the work of the
+    loads exact, so the energy balance of eG stays exact with moving supports."""
+    m, _ = scheme.matrices()
+    R_x, _ = _unconstrained_residual(scheme, scene, ctx, U)
+    Xd = jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["D_test"]), increments(ctx, U))
+    held = jnp.asarray(scene.fixed.array)[None]
+    return jnp.sum(jnp.where(held, Xd * R_x, 0.0)) / ctx.h
 
 
 def end_state(scheme, scene, ctx, U) -> State:
@@ -201,7 +238,7 @@ def predictor(scheme, scene, ctx, velocity) -> Unknowns:
         x = rigid_motion_increments(ctx.state.x, velocity, alpha * ctx.h)
     else:
         x = alpha[:, None, None] * ctx.h * velocity[None]
-        x = jnp.where(jnp.asarray(scene.fixed.array)[None], (scene.x0 - ctx.state.x)[None], x)
+        x = jnp.where(jnp.asarray(scene.fixed.array)[None], held_targets(scheme, scene, ctx) - ctx.state.x[None], x)
     g = None
     if ctx.state.gamma is not None:
         g = jnp.broadcast_to(sym_to_vec(ctx.state.gamma)[None], (len(alpha),) + ctx.state.gamma.shape[:-2] + (6,))

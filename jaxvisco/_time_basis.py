@@ -73,5 +73,6 @@ def time_element_matrices(k, points, weights):
     A = Q[:, 1:] @ Pm
     b = Q[:, 0] + Q[:, 1:] @ Pp
     _, Dend = lagrange(nodes, np.array([1.0]))
+    _, D_test = lagrange(nodes, test_nodes)  # x_h' at the test nodes: reaction work
     return dict(nodes=nodes, points=points, weights=weights, V=V, D=D, W=W, Q=Q,
-                Pm=Pm, Pp=Pp, A=A, b=b, D_end=Dend[0])
+                Pm=Pm, Pp=Pp, A=A, b=b, D_end=Dend[0], D_test=D_test)

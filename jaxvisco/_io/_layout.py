@@ -82,7 +82,7 @@ def scene_attributes(scene) -> dict:
                n_cells=int(scene.mesh.n_cells))
     fixed = getattr(scene, "fixed", None)
     out["held_components"] = 0 if fixed is None else int(np.count_nonzero(fixed.array))
-    out["loaded"] = getattr(scene, "load", None) is not None
+    out["loaded"] = getattr(scene, "loads", None) is not None
     mat = scene.material
     values = dict(density=scene.density, eta_dev=getattr(mat, "eta_dev", None),
                   eta_vol=getattr(mat, "eta_vol", None))

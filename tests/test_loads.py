@@ -1,0 +1,117 @@
+"""Several dead loads with their own time functions, and supports that move in time
+(prescribed motion): the energy balance of eG stays exact with the reactions' work."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxvisco as jv
+from jaxvisco import time_functions as tf
+
+
+@pytest.mark.parametrize("g, ts, expected", [
+    (tf.Constant(2.5), [-1.0, 0.0, 7.0], [2.5, 2.5, 2.5]),
+    (tf.Step(at=1.0, before=1.0, after=0.0), [0.0, 0.999, 1.0, 3.0], [1.0, 1.0, 0.0, 0.0]),
+    (tf.Ramp(t0=1.0, t1=3.0, v0=2.0, v1=4.0), [0.0, 1.0, 2.0, 3.0, 9.0], [2.0, 2.0, 3.0, 4.0, 4.0]),
+    (tf.Table([0.0, 1.0, 3.0], [0.0, 2.0, -2.0]), [-1.0, 0.5, 2.0, 5.0], [0.0, 1.0, 0.0, -2.0]),
+    (tf.Sine(period=4.0, amplitude=2.0, phase=0.5, offset=1.0), [0.0, 1.0, 2.5],
+     [1.0 + 2.0 * math.sin(0.5), 1.0 + 2.0 * math.sin(math.pi / 2 + 0.5), 1.0 + 2.0 * math.sin(1.25 * math.pi + 0.5)]),
+])
+def test_time_functions_values_and_jit(g, ts, expected):
+    out = jax.jit(jax.vmap(g))(jnp.asarray(ts))
+    np.testing.assert_allclose(np.asarray(out), expected, rtol=1e-15, atol=1e-15)
+
+
+def test_time_function_parameters_are_traced():
+    """Parameters are arrays: a new value does not recompile, and derivatives reach them."""
+    d = jax.grad(lambda at: tf.Ramp(t0=0.0, t1=at)(1.0))(2.0)
+    np.testing.assert_allclose(d, -1.0 / 4.0, rtol=1e-14)  # d/dt1 (1/t1)
+
+
+@pytest.mark.parametrize("spec, pattern", [
+    ({"type": "steep"}, r"type must be one of \['constant', 'ramp', 'sine', 'step', 'table'\], got 'steep'"),
+    ({"type": "step", "at": 1.0, "when": 2}, r"unknown key 'when' for type 'step'; accepted: \['at', 'before', 'after'\]"),
+    ({"type": "ramp", "t0": 0.0}, r"type 'ramp' needs 't1'"),
+    ({"type": "ramp", "t0": 1.0, "t1": 1.0}, r"Ramp: t1 must be greater than t0, got t0 = 1.0, t1 = 1.0"),
+    ({"type": "sine", "period": -1.0}, r"Sine: period must be > 0, got -1.0"),
+    ({"type": "step", "at": "soon"}, r"Step: at must be a number, got 'soon'"),
+    ({"type": "table", "times": [0.0, 2.0, 1.0], "values": [0, 1, 2]}, r"Table: times must increase strictly, got 2.0 then 1.0"),
+    ({"type": "table", "times": [0.0, 1.0], "values": [0.0]}, r"Table: times and values must be non-empty lists of the same length, got \(2,\) and \(1,\)"),
+    ({"type": "constant", "value": math.inf}, r"Constant: value must be finite, got inf"),
+    ("ramp", r"expected a table"),
+])
+def test_time_function_from_dict_errors(spec, pattern):
+    with pytest.raises(ValueError, match=r"^scene.toml: time: " + pattern):
+        tf.from_dict(spec, "scene.toml: time: ")
+
+
+def test_from_dict_builds_the_named_function():
+    g = tf.from_dict({"type": "step", "at": 2.0, "before": 1.0, "after": 0.0})
+    assert isinstance(g, tf.Step) and float(g(1.0)) == 1.0 and float(g(2.0)) == 0.0
+    assert float(tf.from_dict(3.0)(10.0)) == 3.0
+
+
+def _beam(**kw):
+    mesh = jv.rectangle(4, 1, lx=4.0, ly=1.0)
+    nh = jv.NeoHooke(lam=30.0, mu=7.5)
+    mat = jv.ReeseGovindjee(nh, nh, eta_dev=10.0, eta_vol=50.0)
+    X = np.asarray(mesh.points)
+    fixed = np.zeros(X.shape, dtype=bool)
+    fixed[X[:, 0] == 0.0] = True
+    return jv.Scene(mesh, mat, 8.93, fixed=fixed, **kw), X, fixed
+
+
+def test_loads_sum_with_their_time_functions():
+    _, X, _ = _beam()
+    f1, f2 = np.zeros(X.shape), np.zeros(X.shape)
+    f1[X[:, 0] == 4.0, 1] = -0.5
+    f2[X[:, 1] == 1.0, 0] = 0.25
+    scene, _, _ = _beam(loads=[(f1, tf.Step(at=1.0, before=1.0, after=0.0)), (f2, lambda t: jnp.sin(t))])
+    for t in (0.5, 1.5):
+        expected = (1.0 if t < 1.0 else 0.0) * f1 + math.sin(t) * f2
+        np.testing.assert_allclose(np.asarray(scene.external_force(jnp.asarray(t))), expected, rtol=1e-15)
+    np.testing.assert_array_equal(np.asarray(scene.load), f1 + f2)
+    with pytest.raises(ValueError, match="either load"):
+        _beam(load=f1, loads=[(f2, None)])
+    with pytest.raises(ValueError, match=r"loads\[1\] must be a pair"):
+        _beam(loads=[(f1, None), f2])
+    with pytest.raises(ValueError, match=r"loads\[0\] force must have shape \(10, 2\)"):
+        _beam(loads=[(f1[:3], None)])
+
+
+def test_prescribed_motion_errors():
+    _, X, fixed = _beam()
+    u = np.zeros(X.shape)
+    u[X[:, 0] == 4.0, 1] = 0.1  # a free node
+    with pytest.raises(ValueError, match=r"prescribed\[0\] displacement is 0.1 at node \d+, component 1, which is not held"):
+        _beam(prescribed=[(u, tf.Ramp(0.0, 1.0))])
+    mesh = jv.rectangle(4, 1, lx=4.0, ly=1.0)
+    with pytest.raises(ValueError, match="no component is held"):
+        jv.Scene(mesh, jv.NeoHooke(lam=1.0, mu=1.0), 1.0, prescribed=[(np.zeros(X.shape), None)])
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("k", [1, 2])
+def test_moving_support_eG_energy_balance_is_exact(k):
+    """The clamped edge is shaken up and down (starting at rest); the support does work on
+    the beam, counted as external work: H_{n+1} - H_n = W_n - D_n to rounding, and the held
+    nodes follow the prescribed motion."""
+    _, X, fixed = _beam()
+    u = np.zeros(X.shape)
+    u[X[:, 0] == 0.0, 1] = 0.3
+    shake = tf.Sine(period=2.0, amplitude=-0.5, phase=math.pi / 2, offset=0.5)  # (1 - cos(pi t)) / 2
+    f = np.zeros(X.shape)
+    f[X[:, 0] == 4.0, 0] = 0.2
+    scene, _, _ = _beam(prescribed=[(u, shake)], loads=[(f, tf.Ramp(0.0, 1.0))])
+    sol = jv.simulate(scene, jv.eG(k), t_end=2.0, dt=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    x, t = np.asarray(sol.x), np.asarray(sol.t)
+    target = X[None] + (0.5 - 0.5 * np.cos(np.pi * t))[:, None, None] * u[None]
+    assert np.max(np.abs(x[:, fixed] - target[:, fixed])) <= 1e-12
+    H, D, W = (np.asarray(a) for a in (sol.energy, sol.dissipated, sol.external_work))
+    assert np.max(np.abs(np.diff(W))) > 1e-2  # the support and the load do work
+    scale = np.max(np.abs(H))
+    assert np.max(np.abs(np.diff(H) + np.diff(D) - np.diff(W))) <= 1e-9 * scale
+    assert np.all(np.diff(D) >= -1e-14 * scale)
