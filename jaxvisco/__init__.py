@@ -7,6 +7,13 @@ jaxvisco computes in float64 and never switches precision behind your back: call
 from . import scenes as scenes
 from . import time_functions as time_functions
 from ._batch import sharded_map as sharded_map
+from ._boundary import boundary_facets as boundary_facets
+from ._boundary import facet_area as facet_area
+from ._boundary import facet_type as facet_type
+from ._boundary import facets_from_nodes as facets_from_nodes
+from ._boundary import nodes_where as nodes_where
+from ._boundary import pressure_load as pressure_load
+from ._boundary import traction_load as traction_load
 from ._config import enable_compilation_cache as enable_compilation_cache
 from ._config import require_x64 as require_x64
 from ._drive import drive as drive
@@ -15,6 +22,8 @@ from ._elements import element_type as element_type
 from ._generators import box as box
 from ._generators import lshape_mesh as lshape_mesh
 from ._generators import rectangle as rectangle
+from ._groups import MeshGroups as MeshGroups
+from ._groups import read_mesh as read_mesh
 from ._identify import Identification as Identification
 from ._identify import identify as identify
 from ._identify import with_parameters as with_parameters

@@ -49,7 +49,13 @@ class Identification(eqx.Module):
 
 
 def with_parameters(scene, values: dict):
-    """A copy of `scene` with material parameters replaced (names in `PARAMETERS`)."""
+    """A copy of `scene` with material parameters replaced (names in `PARAMETERS`); for a
+    scene of one material."""
+    if getattr(scene, "cell_material", None) is not None:
+        raise ValueError(f"with_parameters/identify take a scene of one material; this one has "
+                         f"{int(scene.cell_material.array.max()) + 1} (Scene(material=[(material, cells), ...])). "
+                         "Replace a part's parameters with eqx.tree_at on scene.material, whose leaves hold one "
+                         "value per material.")
     for name, v in values.items():
         if name not in PARAMETERS:
             raise ValueError(f"unknown parameter {name!r}; accepted: {sorted(PARAMETERS)}.")

@@ -163,7 +163,7 @@ def _rhs(scene, t, y, lumped):
     parts = [xdot.ravel(), pdot.ravel()]
     if g is not None:
         C = _right_cauchy_green(scene.disc.deformation_gradient(x))
-        rate = jax.vmap(scene.material.gamma_rate)(C.reshape(-1, 3, 3), gamma.reshape(-1, 3, 3))
+        rate = scene.map_points(lambda m, c, g: m.gamma_rate(c, g), C, gamma)
         parts.append(sym_to_vec(rate).ravel())
     return jnp.concatenate(parts)
 
@@ -238,26 +238,26 @@ def _jac_values(scene, t, y):
         minv = jnp.where(jnp.asarray(scene.fixed.array), 0.0, minv)
     x_el = disc.gather(x)  # (e, n_en, d)
     ne, n_en, d = x_el.shape
-    kernel = lambda dN, w, xe, ge: _element_kernel(scene.material, d, dN, w, xe, ge)  # noqa: E731
     vals = [minv.ravel()]
     if g is None:
-        def jf(dN, w, xe):
-            return jax.jacfwd(lambda u: kernel(dN, w, u.reshape(n_en, d), None)[0].ravel())(xe.ravel())
+        def jf(mat, dN, w, xe):
+            return jax.jacfwd(lambda u: _element_kernel(mat, d, dN, w, u.reshape(n_en, d), None)[0].ravel())(
+                xe.ravel())
 
-        Kxx = jax.vmap(jf)(disc.dN, disc.JxW, x_el)  # (e, m, m)
+        Kxx = scene.map_cells(jf, disc.dN, disc.JxW, x_el)  # (e, m, m)
         Kxx = _mask_rows(scene, -Kxx)
         vals.append(Kxx.ravel())
         return jnp.concatenate(vals)
     nq = disc.n_qp
 
-    def jf(dN, w, xe, ge):
+    def jf(mat, dN, w, xe, ge):
         def fn(u, v):
-            f, r = kernel(dN, w, u.reshape(n_en, d), v.reshape(nq, 6))
+            f, r = _element_kernel(mat, d, dN, w, u.reshape(n_en, d), v.reshape(nq, 6))
             return f.ravel(), r.ravel()
 
         return jax.jacfwd(fn, argnums=(0, 1))(xe.ravel(), ge.ravel())
 
-    (Kxx, Kxg), (Kgx, Kgg) = jax.vmap(jf)(disc.dN, disc.JxW, x_el, g)
+    (Kxx, Kxg), (Kgx, Kgg) = scene.map_cells(jf, disc.dN, disc.JxW, x_el, g)
     Kgg = Kgg.reshape(ne, nq, 6, nq, 6)
     Kgg = jnp.moveaxis(jnp.diagonal(Kgg, axis1=1, axis2=3), -1, 1)  # (e, nq, 6, 6)
     vals += [_mask_rows(scene, -Kxx).ravel(), _mask_rows(scene, -Kxg).ravel(), Kgx.ravel(), Kgg.ravel()]

@@ -30,7 +30,11 @@ class Scene(eqx.Module):
     **Arguments:**
     - `mesh`: a `jaxvisco.Mesh`.
     - `material`: a `ReeseGovindjee` material, or a plain energy function $\psi(C)$
-      (then the scene is elastic and carries no internal variable).
+      (then the scene is elastic and carries no internal variable); or one material per
+      part of the body, a sequence of pairs `(material, cells)` (`cells`: cell indices,
+      e.g. a mesh group's) that gives every cell exactly one material. The materials must
+      have the same form (the same energies, all viscous or all elastic); their
+      parameters differ.
     - `density`: mass density in the reference configuration (> 0).
     - `positions`: initial nodal positions (default: the mesh points, undeformed).
     - `velocities`: initial nodal velocities (default zero); momenta are $p_0 = M v_0$.
@@ -55,7 +59,8 @@ class Scene(eqx.Module):
     """
 
     mesh: eqx.Module
-    material: ReeseGovindjee
+    material: ReeseGovindjee  # one material, or several stacked on a leading axis
+    cell_material: Optional[StaticArray] = eqx.field(static=True)  # (n_cells,) index, None: one
     density: jax.Array
     disc: Discretization
     x0: jax.Array
@@ -71,13 +76,10 @@ class Scene(eqx.Module):
                  load=None, load_time=None, fixed=None, mass="consistent", quadrature_order=None, loads=None,
                  prescribed=None):
         require_x64()
-        if not isinstance(material, ReeseGovindjee):
-            if not callable(material):
-                raise TypeError(
-                    f"material must be a ReeseGovindjee material or an energy function psi(C), "
-                    f"got {type(material).__name__}."
-                )
-            material = ReeseGovindjee(equilibrium=material)
+        if isinstance(material, (list, tuple)):
+            material, self.cell_material = _material_table(material, mesh.n_cells)
+        else:
+            material, self.cell_material = _as_material(material, "material"), None
         check_positive("density", density)
         self.mesh = mesh
         self.material = material
@@ -173,26 +175,54 @@ class Scene(eqx.Module):
     def kinetic_energy(self, p):
         return 0.5 * jnp.vdot(p, self.velocity(p))
 
+    # -- materials per cell ----------------------------------------------------------
+    def cell_materials(self):
+        """The material of every cell, stacked on a leading cell axis; None when one
+        material fills the body (then `material` is it)."""
+        if self.cell_material is None:
+            return None
+        idx = jnp.asarray(self.cell_material.array)
+        dyn, static = eqx.partition(self.material, eqx.is_array)
+        return eqx.combine(jax.tree_util.tree_map(lambda a: a[idx], dyn), static)
+
+    def point_materials(self):
+        """The material of every spatial quadrature point, flat (n_cells * nq) on the
+        leading axis like `_tangent`'s point maps; None for one material."""
+        mats = self.cell_materials()
+        if mats is None:
+            return None
+        dyn, static = eqx.partition(mats, eqx.is_array)
+        return eqx.combine(jax.tree_util.tree_map(lambda a: jnp.repeat(a, self.disc.n_qp, axis=0), dyn), static)
+
+    def map_cells(self, fn, *args):
+        """`fn(material, *args_of_one_cell)` over the cells (leading axis of each of
+        `args`, None passes through), each cell with its material."""
+        mats = self.cell_materials()
+        if mats is None:
+            return jax.vmap(lambda *a: fn(self.material, *a))(*args)
+        dyn, static = eqx.partition(mats, eqx.is_array)
+        return jax.vmap(lambda d, *a: fn(eqx.combine(d, static), *a))(dyn, *args)
+
+    def map_points(self, fn, F, G):
+        """`fn(material, F, G)` at every spatial quadrature point; F (n_cells, nq, ...) and
+        G alike or None."""
+        return self.map_cells(lambda mat, f, g: jax.vmap(lambda a, b: fn(mat, a, b))(f, g), F, G)
+
     def _qp_map(self, fn, x, gamma):
         C = _right_cauchy_green(self.disc.deformation_gradient(x))
-        flat_C = C.reshape(-1, 3, 3)
-        if gamma is None:
-            vals = jax.vmap(lambda c: fn(c, None))(flat_C)
-        else:
-            vals = jax.vmap(fn)(flat_C, gamma.reshape(-1, 3, 3))
-        return vals.reshape(C.shape[:-2] + vals.shape[1:])
+        return self.map_points(fn, C, gamma)
 
     def free_energy(self, x, gamma):
-        return self.disc.integrate(self._qp_map(self.material.free_energy, x, gamma))
+        return self.disc.integrate(self._qp_map(lambda m, c, g: m.free_energy(c, g), x, gamma))
 
     def dissipation_rate(self, x, gamma):
         if gamma is None:
             return jnp.zeros((), dtype=x.dtype)
-        return self.disc.integrate(self._qp_map(self.material.dissipation, x, gamma))
+        return self.disc.integrate(self._qp_map(lambda m, c, g: m.dissipation(c, g), x, gamma))
 
     def stress(self, x, gamma):
         """Second Piola–Kirchhoff stress at every quadrature point."""
-        return self._qp_map(self.material.stress, x, gamma)
+        return self._qp_map(lambda m, c, g: m.stress(c, g), x, gamma)
 
     def internal_force(self, x, gamma):
         F = self.disc.deformation_gradient(x)
@@ -286,6 +316,56 @@ def _time_function(g):
         return g
     _check_load_time(g)
     return _PlainTimeFunction(g)
+
+
+def _as_material(material, name):
+    if isinstance(material, ReeseGovindjee):
+        return material
+    if not callable(material):
+        raise TypeError(f"{name} must be a ReeseGovindjee material or an energy function psi(C), "
+                        f"got {type(material).__name__}.")
+    return ReeseGovindjee(equilibrium=material)
+
+
+def _material_table(pairs, n_cells):
+    """Stack the materials of `(material, cells)` pairs on a leading axis, and the index
+    of each cell's material; checks that every cell gets exactly one."""
+    mats, owner = [], np.full(n_cells, -1)
+    for i, item in enumerate(pairs):
+        if not (isinstance(item, (tuple, list)) and len(item) == 2):
+            raise ValueError(f"material[{i}] must be a pair (material, cell indices), got {type(item).__name__}.")
+        mat, cells = item
+        mats.append(_as_material(mat, f"material[{i}]"))
+        idx = np.asarray(cells)
+        if idx.dtype == bool and idx.shape == (n_cells,):
+            idx = np.flatnonzero(idx)
+        if idx.ndim != 1 or not (idx.size == 0 or np.issubdtype(idx.dtype, np.integer)):
+            raise ValueError(f"material[{i}] cells must be a 1D array of cell indices or a boolean mask of "
+                             f"shape ({n_cells},), got {idx.dtype} {idx.shape}.")
+        bad = idx[(idx < 0) | (idx >= n_cells)]
+        if bad.size:
+            raise ValueError(f"material[{i}] cells: index {int(bad[0])} is outside [0, {n_cells - 1}].")
+        taken = idx[owner[idx] >= 0]
+        if taken.size:
+            c = int(taken[0])
+            raise ValueError(f"material[{i}]: cell {c} already has material[{int(owner[c])}]; each cell takes "
+                             "one material.")
+        owner[idx] = i
+    missing = np.flatnonzero(owner < 0)
+    if missing.size:
+        raise ValueError(f"{missing.size} of {n_cells} cells have no material (the first: cell {int(missing[0])}); "
+                         "the (material, cells) pairs must cover every cell.")
+    dyns, statics = zip(*(eqx.partition(m, eqx.is_array) for m in mats))
+    for i, st in enumerate(statics[1:], start=1):
+        same = jax.tree_util.tree_structure(dyns[i]) == jax.tree_util.tree_structure(dyns[0])
+        if not (same and eqx.tree_equal(st, statics[0]) is True):
+            raise ValueError(f"material[{i}] differs in form from material[0]: the materials of one body must "
+                             "have the same energies (e.g. NeoHooke branches), all viscous or all elastic; only "
+                             "their parameters may differ.")
+    if len(mats) == 1:
+        return mats[0], None
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack([jnp.asarray(x, dtype=float) for x in a]), *dyns)
+    return eqx.combine(stacked, statics[0]), StaticArray(owner.astype(np.int32))
 
 
 def _scaled_sum(vectors, times, t, like=None):

@@ -62,11 +62,6 @@ def nodal_fields(scheme, scene, ctx, U):
     return dX, F, jnp.moveaxis(G, 0, 2)
 
 
-def _over_points(fn, F, G):
-    """vmap a point function over (n_cells, nq)."""
-    if G is None:
-        return jax.vmap(jax.vmap(lambda f: fn(f, None)))(F)
-    return jax.vmap(jax.vmap(fn))(F, G)
 
 
 def momenta(scheme, scene, ctx, X):
@@ -121,7 +116,7 @@ def _unconstrained_residual(scheme, scene, ctx, U):
     reaction's share, `reaction_work`)."""
     m, _ = scheme.matrices()
     X, F, G = nodal_fields(scheme, scene, ctx, U)
-    P, R_G = _over_points(lambda f, g: scheme.point_kernel(scene.material, f, g, ctx.h), F, G)
+    P, R_G = scene.map_points(lambda mat, f, g: scheme.point_kernel(mat, f, g, ctx.h), F, G)
     MX = scene.disc.mass_matvec(X, scene.density)
     R_x = (jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["A"]), MX) / ctx.h
            + jnp.asarray(m["b"])[:, None, None] * ctx.state.p[None]
@@ -142,7 +137,7 @@ def step_dissipation(scheme, scene, ctx, U):
     _, F, G = nodal_fields(scheme, scene, ctx, U)
     if G is None:
         return jnp.zeros((), dtype=ctx.h.dtype)
-    d = _over_points(lambda f, g: scheme.point_dissipation(scene.material, f, g, ctx.h), F, G)
+    d = scene.map_points(lambda mat, f, g: scheme.point_dissipation(mat, f, g, ctx.h), F, G)
     return scene.disc.integrate(d)
 
 

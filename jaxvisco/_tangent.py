@@ -152,13 +152,16 @@ def form_tangent(scheme, scene, ctx, U, rotation=None) -> Tangent:
     m, _ = scheme.matrices()
     k, d, disc = scheme.k, scene.dim, scene.disc
     _, F, G = nodal_fields(scheme, scene, ctx, U)
-    point = functools.partial(_point_tangent, scheme, scene.material, ctx.h)
     ne, nq = disc.n_cells, disc.n_qp
-    flat = lambda a: a.reshape((ne * nq,) + a.shape[2:])  # noqa: E731
-    if G is None:
-        out = _map_points(lambda f: point(f, None), flat(F))
-    else:
+    flat = lambda a: None if a is None else a.reshape((ne * nq,) + a.shape[2:])  # noqa: E731
+    mats = scene.point_materials()
+    if mats is None:
+        point = functools.partial(_point_tangent, scheme, scene.material, ctx.h)
         out = _map_points(lambda fg: point(*fg), (flat(F), flat(G)))
+    else:
+        dyn, static = eqx.partition(mats, eqx.is_array)
+        out = _map_points(lambda a: _point_tangent(scheme, eqx.combine(a[0], static), ctx.h, a[1], a[2]),
+                          (dyn, flat(F), flat(G)))
     dPdF, Ainv, dGdF, dPdG = (None if o is None else o.reshape((ne, nq) + o.shape[1:]) for o in out)
     nq_t = dPdF.shape[2] // 9
     dPdF = dPdF.reshape(ne, nq, nq_t, 3, 3, k, 3, 3)[:, :, :, :d, :d, :, :d, :d]

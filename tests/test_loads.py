@@ -115,3 +115,70 @@ def test_moving_support_eG_energy_balance_is_exact(k):
     scale = np.max(np.abs(H))
     assert np.max(np.abs(np.diff(H) + np.diff(D) - np.diff(W))) <= 1e-9 * scale
     assert np.all(np.diff(D) >= -1e-14 * scale)
+
+
+# ------------------------------------------------------------------ materials per part
+
+
+def _two_part_scene(mat_left, mat_right, **kw):
+    mesh = jv.rectangle(4, 1, lx=4.0, ly=1.0)
+    centres = np.asarray(mesh.points)[np.asarray(mesh.cells)].mean(axis=1)
+    left = np.flatnonzero(centres[:, 0] < 2.0)
+    right = np.flatnonzero(centres[:, 0] >= 2.0)
+    X = np.asarray(mesh.points)
+    v0 = jnp.stack([jnp.zeros(len(X)), 0.4 * jnp.asarray(X[:, 0]) - 0.8], -1)
+    return jv.Scene(mesh, [(mat_left, left), (mat_right, right)], 8.93, velocities=v0, **kw), mesh
+
+
+def _viscous(lam, mu, eta_dev, eta_vol):
+    nh = jv.NeoHooke(lam=lam, mu=mu)
+    return jv.ReeseGovindjee(nh, nh, eta_dev=eta_dev, eta_vol=eta_vol)
+
+
+@pytest.mark.timeout(300)
+def test_materials_per_part_equal_one_material_and_keep_the_balance():
+    """Two parts with the same material run exactly like one material; with a stiff, slow
+    left part and a soft, fast right part the run differs, and eG's energy balance,
+    D >= 0 and the momenta still hold exactly (the tangent stays exact: few iterations)."""
+    mat = _viscous(30.0, 7.5, 10.0, 50.0)
+    run = dict(t_end=1.0, dt=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    same, mesh = _two_part_scene(mat, mat)
+    one = jv.Scene(mesh, mat, 8.93, velocities=same.v0)
+    assert same.cell_material is not None  # the per-cell path, with equal parameters
+    a, b = jv.simulate(same, jv.eG(1), **run), jv.simulate(one, jv.eG(1), **run)
+    np.testing.assert_allclose(np.asarray(a.x), np.asarray(b.x), rtol=0, atol=1e-12)
+
+    two, _ = _two_part_scene(_viscous(60.0, 15.0, 5.0, 25.0), _viscous(30.0, 7.5, 10.0, 50.0))
+    assert two.cell_material is not None
+    sol = jv.simulate(two, jv.eG(1), **run)
+    assert np.max(np.abs(np.asarray(sol.x) - np.asarray(b.x))) > 1e-3
+    H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
+    assert np.max(np.abs(np.diff(H) + np.diff(D))) <= 1e-9 * H[0]
+    assert np.all(np.diff(D) >= 0) and D[-1] > 0
+    L = np.asarray(sol.linear_momentum)
+    momentum_scale = 8.93 * 4.0 * float(jnp.max(jnp.abs(two.v0)))  # mass times top speed
+    assert np.max(np.abs(L - L[0])) <= 1e-12 * momentum_scale
+    assert np.max(np.asarray(sol.newton_iterations)) <= 6
+    # each cell's stress comes from its own material
+    x = two.x0 + 0.01 * jnp.asarray(np.asarray(mesh.points))  # uniform 1 % stretch
+    S = np.asarray(two.stress(x, two.gamma0))
+    S_left = np.asarray(_viscous(60.0, 15.0, 5.0, 25.0).stress(jnp.eye(3).at[:2, :2].mul(1.01**2), jnp.eye(3)))
+    cells_left = np.flatnonzero(np.asarray(two.cell_material.array) == 0)
+    np.testing.assert_allclose(S[cells_left], np.broadcast_to(S_left, S[cells_left].shape), rtol=1e-12, atol=1e-12)
+
+
+def test_materials_per_part_errors():
+    mesh = jv.rectangle(4, 1, lx=4.0, ly=1.0)
+    a, b = _viscous(30.0, 7.5, 10.0, 50.0), _viscous(60.0, 15.0, 5.0, 25.0)
+    with pytest.raises(ValueError, match=r"3 of 4 cells have no material \(the first: cell 1\)"):
+        jv.Scene(mesh, [(a, [0])], 1.0)
+    with pytest.raises(ValueError, match=r"material\[1\]: cell 1 already has material\[0\]"):
+        jv.Scene(mesh, [(a, [0, 1]), (b, [1, 2, 3])], 1.0)
+    with pytest.raises(ValueError, match=r"material\[1\] cells: index 7 is outside \[0, 3\]"):
+        jv.Scene(mesh, [(a, [0, 1]), (b, [2, 7])], 1.0)
+    elastic = jv.ReeseGovindjee(jv.NeoHooke(lam=1.0, mu=1.0))
+    with pytest.raises(ValueError, match=r"material\[1\] differs in form from material\[0\]"):
+        jv.Scene(mesh, [(a, [0, 1]), (elastic, [2, 3])], 1.0)
+    scene = jv.Scene(mesh, [(a, [0, 1]), (b, [2, 3])], 1.0)
+    with pytest.raises(ValueError, match="take a scene of one material; this one has 2"):
+        jv.with_parameters(scene, {"eta_dev": 1.0})
