@@ -11,8 +11,10 @@ hexahedron is also the Abaqus (C3D8, C3D20) ordering:
   3-7.
 - `hex27`: as `hex20`, then face centres x = -1, x = +1, y = -1, y = +1, z = -1,
   z = +1 (VTK's triquadratic hexahedron), then the centre.
+- `line2`/`line3` (facets of 2D cells, used for boundary loads): the two ends, then
+  the middle.
 
-Reference domains: [-1, 1]^d for quadrilaterals and hexahedra, the unit simplex for
+Reference domains: [-1, 1]^d for lines, quadrilaterals and hexahedra, the unit simplex for
 triangles and tetrahedra.
 """
 
@@ -44,6 +46,8 @@ _TRI3 = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
 _TET4 = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 
 _REFERENCE_NODES = {
+    "line2": np.array([[-1.0], [1.0]]),
+    "line3": np.array([[-1.0], [1.0], [0.0]]),
     "tri3": _TRI3,
     "tri6": _with_midpoints(_TRI3, _TRI_EDGES),
     "tet4": _TET4,
@@ -70,6 +74,9 @@ _TABLE = {
     "tet10": (3, 10, 2, "tetra10", "simplex"),
     "hex20": (3, 20, 2, "hexahedron20", "serendipity"),
     "hex27": (3, 27, 2, "hexahedron27", "lagrange"),
+    # Facet elements (boundary loads on 2D meshes); no Mesh is made of them.
+    "line2": (1, 2, 1, "line", "lagrange"),
+    "line3": (1, 3, 2, "line3", "lagrange"),
 }
 _MESHIO_TO_NAME = {row[3]: name for name, row in _TABLE.items()}
 _EDGES = {"tri6": _TRI_EDGES, "tet10": _TET_EDGES}
@@ -82,8 +89,9 @@ class ElementType:
     **Fields:**
 
     - `name`: one of `"tri3"`, `"quad4"`, `"tet4"`, `"hex8"`, `"tri6"`, `"quad8"`,
-      `"quad9"`, `"tet10"`, `"hex20"`, `"hex27"`.
-    - `dim`: spatial dimension of the reference cell (2 or 3).
+      `"quad9"`, `"tet10"`, `"hex20"`, `"hex27"`, or the facet elements `"line2"`,
+      `"line3"` (edges of 2D cells; meshes are never made of them).
+    - `dim`: dimension of the reference cell (2 or 3; 1 for `line2`/`line3`).
     - `n_nodes`: number of nodes.
     - `degree`: polynomial degree (1 or 2).
     - `meshio_name`: the meshio cell type.
@@ -106,7 +114,7 @@ class ElementType:
 
     @property
     def reference_volume(self) -> float:
-        """Volume of the reference cell (1/2, 1/6, 4 or 8)."""
+        """Volume of the reference cell (1/2, 1/6, 2, 4 or 8)."""
         if self.is_simplex:
             return 0.5 if self.dim == 2 else 1.0 / 6.0
         return float(2**self.dim)

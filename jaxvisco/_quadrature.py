@@ -24,6 +24,8 @@ _SHAPES = {
     "hexahedron": "hex",
 }
 # Element and meshio names map to their reference shape too.
+for _name in ("line2", "line3"):
+    _SHAPES[_name] = "line"
 for _name in ("tri3", "tri6", "triangle6"):
     _SHAPES[_name] = "tri"
 for _name in ("quad4", "quad8", "quad9"):
