@@ -182,3 +182,27 @@ def test_materials_per_part_errors():
     scene = jv.Scene(mesh, [(a, [0, 1]), (b, [2, 3])], 1.0)
     with pytest.raises(ValueError, match="take a scene of one material; this one has 2"):
         jv.with_parameters(scene, {"eta_dev": 1.0})
+
+
+# ------------------------------------------------------------------ surface loads
+
+
+@pytest.mark.timeout(300)
+def test_traction_gives_the_exact_impulse_and_eG_balances_its_work():
+    """A free block pulled on its right face by a uniform traction ramped up over t in
+    [0, 1] and then held: the total momentum grows by the exact impulse
+    t0 * length * int g dt (1.5 at t = 2), and H_{n+1} - H_n = W_n - D_n to rounding."""
+    mesh = jv.rectangle(3, 2, lx=3.0, ly=2.0, cell_type="quad8")
+    right = jv.facets_from_nodes(mesh, jv.nodes_where(mesh, lambda X: np.isclose(X[:, 0], 3.0)))
+    assert len(right) == 2 and np.isclose(jv.facet_area(mesh, right), 2.0)
+    t0 = np.array([0.3, -0.1])
+    scene = jv.Scene(mesh, _viscous(30.0, 7.5, 10.0, 50.0), 8.93,
+                     loads=[(jv.traction_load(mesh, right, t0), tf.Ramp(0.0, 1.0))])
+    sol = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    t = np.asarray(sol.t)
+    impulse = np.where(t < 1.0, 0.5 * t**2, 0.5 + (t - 1.0))[:, None] * (2.0 * t0)[None]
+    L = np.asarray(sol.linear_momentum)
+    np.testing.assert_allclose(L - L[0], impulse, rtol=0, atol=1e-12)
+    H, D, W = (np.asarray(a) for a in (sol.energy, sol.dissipated, sol.external_work))
+    assert W[-1] > 1e-3 and D[-1] > 0
+    assert np.max(np.abs(np.diff(H) + np.diff(D) - np.diff(W))) <= 1e-9 * np.max(np.abs(H))
