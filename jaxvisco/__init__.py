@@ -11,6 +11,7 @@ from ._boundary import boundary_facets as boundary_facets
 from ._boundary import facet_area as facet_area
 from ._boundary import facet_type as facet_type
 from ._boundary import facets_from_nodes as facets_from_nodes
+from ._boundary import local_facets as local_facets
 from ._boundary import nodes_where as nodes_where
 from ._boundary import pressure_load as pressure_load
 from ._boundary import traction_load as traction_load
@@ -42,6 +43,8 @@ from ._ode import semidiscrete as semidiscrete
 from ._resume import resume as resume
 from ._scene import Scene as Scene
 from ._scene import State as State
+from ._scenefile import SceneFile as SceneFile
+from ._scenefile import read_scene_file as read_scene_file
 from ._schedule import StepTo as StepTo
 from ._simulate import simulate as simulate
 from ._solution import Solution as Solution

@@ -132,6 +132,14 @@ class Scene(eqx.Module):
         self.loads = jnp.stack(forces) if forces else None
         self.load_times = tuple(_time_function(g) for _, g in pairs)
 
+    @classmethod
+    def from_file(cls, path) -> "Scene":
+        """The scene a TOML scene file describes (`jaxvisco.read_scene_file` reads the
+        rest: integrator, steps, output)."""
+        from ._scenefile import scene_from_file
+
+        return scene_from_file(path)
+
     @property
     def dim(self):
         return self.mesh.dim

@@ -1,11 +1,13 @@
-"""Command line: ``jaxvisco paper | run | plot``.
+"""Command line: ``jaxvisco paper | run | plot | scene-template``.
 
 ``jaxvisco paper`` reproduces the L-shape comparison of Groß & Betsch (2005) (cG(1)
 against eG(1), a step-size change at t = 20 and large steps from the outset), ``jaxvisco
-run`` integrates a built-in L-shape or a mesh file with any integrator, ``jaxvisco plot``
-draws energy, energy balance and momenta from a results file. Every subcommand has
-``--help``. Runs are advanced in equal-sized chunks (one compiled program reused) so that
-progress can be printed and the results file grows as the run goes.
+run`` integrates a scene file (``jaxvisco run SCENE.toml``, see `_scenefile`), a built-in
+L-shape or a mesh file with any integrator, ``jaxvisco plot`` draws energy, energy
+balance and momenta from a results file, ``jaxvisco scene-template`` prints a commented
+scene file. Every subcommand has ``--help``. Runs are advanced in equal-sized chunks (one
+compiled program reused) so that progress can be printed and the results file grows as
+the run goes.
 """
 
 import argparse
@@ -318,6 +320,9 @@ def _resume_args(args):
     import jaxvisco as jv
 
     restart = jv.read_restart(args.resume)
+    if args.scene is not None:
+        raise ValueError(f"with --resume the scene comes from the results file; give no scene file "
+                         f"({args.scene!r}), only --t-end and --quiet.")
     given = {k: v for k, v in vars(args).items() if k not in ("func",) + _RESUMABLE}
     defaults = {k: v for k, v in vars(build_parser().parse_args(["run"])).items() if k in given}
     changed = sorted(k for k, v in given.items() if v != defaults[k])
@@ -368,16 +373,58 @@ class _StopOnSigint:
             signal.signal(signal.SIGINT, self.old)
 
 
+# Options that describe the body: the built-in scene's, given by a scene file otherwise.
+_SCENE_FLAGS = ("mesh", "dim", "refinement", "element", "lam", "mu", "density", "eta_dev", "eta_vol")
+_RUN_DEFAULTS = dict(dim=2, refinement=1, integrator="eG", order=1, save_every=1, max_halvings=6, chunk=50,
+                     commit_every=5.0, out="jaxvisco-run.h5")
+
+
+def _scene_file_options(args):
+    """Read the scene file of `args` (its path, or the text stored by the run that
+    `--resume` continues) and take every run option not given on the command line from
+    it; without a scene file fill in the built-in defaults. Returns ``(SceneFile or None,
+    the file's schedule as messages name it, or None)``."""
+    from ._scenefile import read_scene_file
+
+    origin = None
+    if args.scene is None and args.scene_source is None:
+        for k, v in _RUN_DEFAULTS.items():
+            if getattr(args, k) is None:
+                setattr(args, k, v)
+        return None, origin
+    clash = [k for k in _SCENE_FLAGS if getattr(args, k) is not None]
+    if clash:
+        raise ValueError(f"--{clash[0].replace('_', '-')} cannot be given with a scene file: its [mesh] and "
+                         "[material] describe the body (give the overrides in the file).")
+    sf = read_scene_file(args.scene, source=args.scene_source, base_dir=args.scene_dir)
+    args.scene_source, args.scene_dir = sf.source, sf.base_dir
+    if args.schedule is not None and args.t_end is None:
+        args.t_end = parse_schedule(args.schedule)[-1][0]  # --schedule without --t-end: to its end
+    if args.dt is None and args.schedule is None:
+        if isinstance(sf.dt, tuple):
+            args.schedule = ",".join(f"{a!r}:{b!r}" for a, b in sf.dt)
+            origin = f"the schedule of {args.scene} ({args.schedule!r})"
+        else:
+            args.dt = sf.dt
+    file_options = dict(t_end=sf.t_end, integrator=type(sf.integrator).__name__,
+                        order=getattr(sf.integrator, "k", 1), max_halvings=sf.max_halvings, out=sf.output["file"],
+                        **{k: sf.output[k] for k in ("save_every", "chunk", "commit_every")})
+    for k, v in file_options.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
+    args.save_gamma = args.save_gamma or sf.output["save_gamma"]
+    return sf, origin
+
+
 def _run(args):
     import jaxvisco as jv
 
     restart = None
     if args.resume is not None:
         args, restart = _resume_args(args)
-    if args.commit_every is None:
-        args.commit_every = 5.0
     if args.dt is not None and args.schedule is not None:
         raise ValueError("give either --dt or --schedule, not both.")
+    sf, schedule_origin = _scene_file_options(args)
     if args.mesh is not None and not os.path.isfile(args.mesh):
         raise FileNotFoundError(f"mesh file {args.mesh!r} does not exist.")
     if args.save_every < 1:
@@ -395,20 +442,25 @@ def _run(args):
         raise FileExistsError(f"results file {args.out!r} exists; pass --overwrite to replace it, or continue it "
                               f"with --resume {args.out}.")
     integrator = make_integrator(args.integrator, args.order)
-    scene = make_scene(dim=args.dim, refinement=args.refinement, element=args.element, mesh=args.mesh,
-                       lam=args.lam, mu=args.mu, density=args.density, eta_dev=args.eta_dev, eta_vol=args.eta_vol)
+    if sf is not None:
+        scene = sf.scene
+    else:
+        scene = make_scene(dim=args.dim, refinement=args.refinement, element=args.element, mesh=args.mesh,
+                           lam=args.lam, mu=args.mu, density=args.density, eta_dev=args.eta_dev,
+                           eta_vol=args.eta_vol)
     if args.schedule is not None:
         dt = parse_schedule(args.schedule)
+        schedule_name = schedule_origin or f"--schedule {args.schedule!r}"
         t_end = args.t_end if args.t_end is not None else dt[-1][0]
         if t_end > dt[-1][0]:
             if restart is None:
-                raise ValueError(f"--schedule {args.schedule!r} ends at t = {dt[-1][0]:g}, before --t-end {t_end:g}: "
+                raise ValueError(f"{schedule_name} ends at t = {dt[-1][0]:g}, before --t-end {t_end:g}: "
                                  f"add a piece that reaches it, e.g. '{args.schedule},{t_end:g}:{dt[-1][1]:g}'.")
             dt[-1] = (math.inf, dt[-1][1])  # --resume --t-end: the last step continues
         try:
             steps = jv.StepTo.from_schedule(0.0, t_end, dt)
         except ValueError as e:
-            raise ValueError(f"--schedule {args.schedule!r}: {e}") from None
+            raise ValueError(f"{schedule_name}: {e}") from None
     else:
         t_end = 1.0 if args.t_end is None else args.t_end
         steps = jv.StepTo.from_schedule(0.0, t_end, 0.1 if args.dt is None else args.dt)
@@ -428,12 +480,12 @@ def _run(args):
         ts = np.concatenate([[restart.t], ts[done + 1:]])
         state0, v0 = restart.state, restart.velocity
     params = {k: v for k, v in vars(args).items() if k != "func"}
-    params.update(t_end=t_end, dim=scene.dim)
+    params.update(t_end=t_end, **({} if sf is not None else dict(dim=scene.dim)))
     if restart is not None:
         w = jv.ResultsWriter(args.out, append=True, attrs={"parameters": params})
     else:
-        attrs = dict(scene=("mesh:" + args.mesh) if args.mesh else "lshape", integrator=integrator.describe(),
-                     parameters=params)
+        label = "scenefile:" + args.scene if sf is not None else ("mesh:" + args.mesh) if args.mesh else "lshape"
+        attrs = dict(scene=label, integrator=integrator.describe(), parameters=params)
         w = jv.ResultsWriter(args.out, scene, attrs, overwrite=args.overwrite)
     status = "failed"
     try:
@@ -441,7 +493,7 @@ def _run(args):
             r = run_chunked(scene, integrator, jv.StepTo(ts), chunk=c, commit_every=args.commit_every,
                             save_every=args.save_every, writer=w, save_gamma=args.save_gamma, label=integrator.name,
                             quiet=args.quiet, initial_state=state0, initial_velocity=v0, should_stop=stop,
-                            max_halvings=args.max_halvings)
+                            max_halvings=args.max_halvings, solver=None if sf is None else sf.solver)
         status = r["status"]
     except KeyboardInterrupt:
         status = "interrupted"
@@ -534,7 +586,7 @@ def build_parser():
     p = argparse.ArgumentParser(prog="jaxvisco", description="Finite-strain viscoelastodynamics with "
                                 "energy-consistent Galerkin time elements (Gross & Betsch 2005).")
     p.add_argument("--version", action="version", version=f"jaxvisco {_version()}")
-    sub = p.add_subparsers(dest="command", metavar="{paper,run,plot}")
+    sub = p.add_subparsers(dest="command", metavar="{paper,run,plot,scene-template}")
     sub.required = True
 
     q = sub.add_parser("paper", help="cG(1) vs eG(1) on the paper's L-shape; energy.png + results files",
@@ -548,37 +600,53 @@ def build_parser():
     q.add_argument("--overwrite", action="store_true", help="replace existing results files in --out")
     q.set_defaults(func=_paper)
 
-    r = sub.add_parser("run", help="integrate a built-in L-shape or a mesh file",
-                       description="Integrate the paper's L-shape (or a mesh file with the paper's material and "
-                       "rigid initial velocity) with any integrator; write an HDF5 results file and XDMF.")
-    r.add_argument("--dim", type=int, default=2, help="2 or 3 (built-in L-shape; default 2)")
-    r.add_argument("--refinement", type=int, default=1, help="elements per unit length (default 1)")
+    r = sub.add_parser("run", help="integrate a scene file, a built-in L-shape or a mesh file",
+                       description="Integrate the scene of a scene file (SCENE.toml: mesh, groups, material, initial "
+                       "velocity, clamps, loads, tractions, integrator, steps, output; `jaxvisco scene-template` "
+                       "prints a commented one), or the paper's L-shape (or a mesh file with the paper's material and "
+                       "rigid initial velocity), with any integrator; write an HDF5 results file and XDMF. With a "
+                       "scene file the options --integrator, --order, --t-end, --dt, --schedule, --save-every, "
+                       "--save-gamma, --max-halvings, --chunk, --commit-every and --out override the file's; the "
+                       "body's options (--mesh, --dim, --refinement, --element, --lam, --mu, --density, --eta-*) "
+                       "are refused.")
+    r.add_argument("scene", nargs="?", default=None, metavar="SCENE.toml",
+                   help="a scene file (default: the built-in L-shape, or --mesh)")
+    r.add_argument("--dim", type=int, default=None, help="2 or 3 (built-in L-shape; default 2)")
+    r.add_argument("--refinement", type=int, default=None, help="elements per unit length (default 1)")
     r.add_argument("--element", default=None, help="cell type, e.g. quad4, quad9, tri3, hex8, tet10 (default quad4/hex8)")
     r.add_argument("--mesh", default=None, help="a mesh file (any meshio format) instead of the built-in L-shape")
-    r.add_argument("--integrator", default="eG", help="cG, eG, Newmark or Midpoint (default eG)")
-    r.add_argument("--order", type=int, default=1, help="polynomial degree k of cG(k)/eG(k) (default 1)")
+    r.add_argument("--integrator", default=None, help="cG, eG, Newmark or Midpoint (default eG)")
+    r.add_argument("--order", type=int, default=None, help="polynomial degree k of cG(k)/eG(k) (default 1)")
     r.add_argument("--t-end", type=float, default=None, help="final time (default 1, or the schedule's last time)")
     r.add_argument("--dt", type=float, default=None, help="constant time step (default 0.1)")
     r.add_argument("--schedule", default=None, help="piecewise-constant steps 'T1:DT1,T2:DT2', e.g. '20:0.1,40:1.0'")
     for name in ("eta-dev", "eta-vol", "lam", "mu", "density"):
         r.add_argument("--" + name, type=float, default=None, help=f"material parameter {name} (default: paper)")
-    r.add_argument("--save-every", type=int, default=1, help="save every N-th step (default 1)")
+    r.add_argument("--save-every", type=int, default=None, help="save every N-th step (default 1)")
     r.add_argument("--save-gamma", action="store_true", help="also store the internal variable /qp/gamma")
-    r.add_argument("--max-halvings", type=int, default=6,
+    r.add_argument("--max-halvings", type=int, default=None,
                    help="a failed step is halved at most N times (smallest step h/2**N) before the run stops "
                    "(default 6)")
-    r.add_argument("--chunk", type=int, default=50, help="at most N steps per compiled call (default 50)")
+    r.add_argument("--chunk", type=int, default=None, help="at most N steps per compiled call (default 50)")
     r.add_argument("--commit-every", type=float, default=None, metavar="SECONDS",
                    help="commit the results at least about every SECONDS of computing (chunks sized from the "
                    "measured time per step; default 5); 0: commit every --chunk steps, so that a run split at a "
                    "commit repeats the uninterrupted one exactly")
     r.add_argument("--overwrite", action="store_true", help="replace an existing results file")
-    r.add_argument("--out", default="jaxvisco-run.h5", help="results file (default jaxvisco-run.h5); an .xdmf goes beside it")
+    r.add_argument("--out", default=None, help="results file (default jaxvisco-run.h5, or the scene file's [output] "
+                   "file); an .xdmf goes beside it")
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     r.add_argument("--resume", default=None, metavar="RESULTS.h5",
                    help="continue the run stored in RESULTS.h5 (appending to it) with its own options; "
-                   "--t-end extends it (a --schedule's last step continues)")
-    r.set_defaults(func=_run)
+                   "--t-end extends it (a --schedule's last step continues); a run of a scene file is rebuilt from "
+                   "the copy of the file stored in RESULTS.h5")
+    r.set_defaults(func=_run, scene_source=None, scene_dir=None)
+
+    st = sub.add_parser("scene-template", help="print a commented scene file",
+                        description="Print a commented scene file that documents every key and runs as it stands "
+                        "(a clamped strip under a tip load switched off at t = 1): jaxvisco scene-template > "
+                        "my.toml; jaxvisco run my.toml")
+    st.set_defaults(func=_scene_template)
 
     pl = sub.add_parser("plot", help="plot energy, energy balance and momenta from a results file",
                         description="Plot H, H + dissipated, the energy balance error and the momenta of a results file.")
@@ -586,6 +654,13 @@ def build_parser():
     pl.add_argument("--out", default=None, help="PNG file (default: beside the results file)")
     pl.set_defaults(func=_plot)
     return p
+
+
+def _scene_template(args):
+    from ._scenetemplate import TEMPLATE
+
+    sys.stdout.write(TEMPLATE)
+    return 0
 
 
 def _version():
