@@ -558,3 +558,25 @@ def test_cli_resume_refuses_a_scene_file(strip_run, capsys):
     d, _, _ = strip_run
     assert main(["run", str(d / "strip.toml"), "--resume", str(d / "strip.h5")]) == 2
     assert "with --resume the scene comes from the results file" in capsys.readouterr().err
+
+
+def test_plot_of_a_loaded_run_balances_the_work(strip_run):
+    """`jaxvisco plot` of a clamped, loaded run: the balance panel includes the external
+    work (the body starts at rest: H0 = 0, so the scale is the work, not H0) and stays at
+    rounding; the momentum panels say that loads and supports act."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxvisco.cli import plot_figure
+
+    _, cli, _ = strip_run
+    fig = plot_figure(cli)
+    try:
+        axes = {a.get_title(): a for a in fig.axes}
+        err = axes["energy balance error |H + D − W − H0| / max(|H|, |W|)"].get_lines()[0].get_ydata()
+        assert np.max(err) < 1e-8
+        assert "linear momentum L − L(0) (loads, supports act)" in axes
+    finally:
+        plt.close(fig)
