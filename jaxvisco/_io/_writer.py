@@ -325,8 +325,10 @@ def save(solution, scene, path, *, gamma=None, attrs=None, overwrite=False, xdmf
 
 
 def _all_finite(a):
+    """Per leading entry (frame or step): all values finite. Empty when `a` has no entries
+    (a chunk whose first step failed appends nothing)."""
     a = np.asarray(a)
-    return np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1) if a.ndim > 1 else np.isfinite(a)
+    return np.isfinite(a).all(axis=tuple(range(1, a.ndim)))
 
 
 def _truncate(f, n_frames, n_steps):
