@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import jit
+from ._config import _top_level, jit
 from ._differentiable import layout, run_scan
 from ._newton import NewtonKrylov, solve_step
 from ._scene import Scene, State
@@ -72,8 +72,11 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
     - `initial_velocity`: the predictor's velocity for the first step (default: the
       velocity of the initial momenta). A restart that passes the previous run's
       `Solution.end_velocity` repeats the uninterrupted run exactly.
-    - `max_steps`: capacity of the compiled loop (default: the number of steps). Runs
-      with different step counts but the same `max_steps` share one compilation.
+    - `max_steps`: capacity of the compiled loop (default: the number of steps rounded up
+      to the next of 8, 12, 16, 24, 32, 48, ...: runs of 100 and 120 steps share one
+      program, in memory and in the persistent cache, at most 1.5x the saved frames
+      until they are trimmed; called under a JAX transformation, the number of steps).
+      Runs with the same capacity share one compilation.
     - `throw`: raise `SolverError` on failure (else return with `status == "failed"`).
     - `differentiable`: run the loop that JAX can differentiate (`jax.grad`, `jax.jvp`,
       `jax.vmap`) with respect to anything the scene holds (material parameters,
@@ -102,6 +105,8 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
         if int(max_steps) < n_active:
             raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
         hs, te = _padded(hs, te, int(max_steps))
+    elif not differentiable and _top_level():  # traced callers keep arrays of the run's length
+        hs, te = _padded(hs, te, capacity(n_active))
     state0 = scene.initial_state() if initial_state is None else initial_state
     if initial_state is not None:
         ref = dict(x=scene.x0, p=scene.x0, gamma=scene.gamma0)
@@ -138,6 +143,16 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
                int(max_halvings), v0, use_v0)
     return _finish(sol, integrator, int(max_halvings), throw)
+
+
+def capacity(n):
+    """The compiled loop's default number of step slots for `n` steps: the next of 8, 12,
+    16, 24, 32, 48, 64, ... (powers of two and 1.5 times them), so that runs of nearby
+    lengths (another `t_end`, another `dt`) reuse one compiled program."""
+    c = 8
+    while c < n:
+        c = c * 3 // 2 if c & (c - 1) == 0 else c // 3 * 4
+    return c
 
 
 def _padded(hs, te, n):
