@@ -35,7 +35,8 @@ class Scene(eqx.Module):
       e.g. a mesh group's) that gives every cell exactly one material. The materials must
       have the same form (the same energies, all viscous or all elastic); their
       parameters differ.
-    - `density`: mass density in the reference configuration (> 0).
+    - `density`: mass density in the reference configuration (> 0): one number, or one per
+      cell (n_cells,) for a body whose parts differ.
     - `positions`: initial nodal positions (default: the mesh points, undeformed).
     - `velocities`: initial nodal velocities (default zero); momenta are $p_0 = M v_0$.
     - `gamma`: initial internal variable (n_cells, nq, 3, 3) (default identity: virgin).
@@ -84,6 +85,9 @@ class Scene(eqx.Module):
         self.mesh = mesh
         self.material = material
         self.density = jnp.asarray(density, dtype=float)
+        if self.density.shape not in ((), (mesh.n_cells,)):
+            raise ValueError(f"density must be one number or one per cell, shape ({mesh.n_cells},); got shape "
+                             f"{self.density.shape}.")
         self.disc = Discretization(mesh, quadrature_order, mass=mass)
         _check_orientation(self.disc.JxW)
         shape = (mesh.n_nodes, mesh.dim)
@@ -139,6 +143,11 @@ class Scene(eqx.Module):
         from ._scenefile import scene_from_file
 
         return scene_from_file(path)
+
+    def mass(self):
+        """Total mass $\\int \\rho\\, dV$."""
+        rho = self.density if jnp.ndim(self.density) == 0 else self.density[:, None]
+        return jnp.sum(rho * self.disc.JxW)
 
     @property
     def dim(self):

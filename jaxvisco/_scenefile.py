@@ -10,7 +10,8 @@ documents each one; paths are relative to the scene file):
   or a number), beside the mesh file's groups (Gmsh physical groups, Abaqus sets).
 - ``[material]``: ``lam``, ``mu``, ``eta_dev``, ``eta_vol`` (or ``[material.equilibrium]``
   and ``[material.nonequilibrium]`` with ``lam``, ``mu``), ``density``, ``mass``;
-  ``[[material.part]]``: ``cells`` (cell groups) and any of those material keys.
+  ``[[material.part]]``: ``cells`` (cell groups) and any of those material keys,
+  ``density`` included.
 - ``[initial]``: ``velocity``, ``angular_velocity``, ``center``, ``[[initial.velocity_field]]``
   (``nodes``, ``value``).
 - ``[[dirichlet]]``: ``nodes``, ``components``, ``displacement``, ``time``.

@@ -1,6 +1,6 @@
-"""The ``[material]`` table of a scene file (`_scenefile`): Neo-Hooke branches and
-viscosities, one material for the body or one per part (``[[material.part]]``, a cell
-group with its own data)."""
+"""The ``[material]`` table of a scene file (`_scenefile`): Neo-Hooke branches,
+viscosities and density, one material for the body or one per part
+(``[[material.part]]``, a cell group with its own data, density included)."""
 
 import math
 
@@ -29,9 +29,9 @@ class MaterialReader:
         if not parts:
             return self.branches(t, "[material]"), density, mass
         n_cells = self.mesh.n_cells
-        owner, pairs, names = np.zeros(n_cells, dtype=int), [], []
+        owner, pairs, names, densities = np.zeros(n_cells, dtype=int), [], [], []
         for i, part in enumerate(parts, 1):
-            pt = _Table(self.name, part, f"[[material.part]] {i}", _MATERIAL_KEYS + ("cells",))
+            pt = _Table(self.name, part, f"[[material.part]] {i}", _MATERIAL_KEYS + ("cells", "density"))
             cells = self.cells(pt)
             if owner[cells].any():
                 c = cells[owner[cells] > 0][0]
@@ -42,7 +42,8 @@ class MaterialReader:
             merged = {k: v for k, v in base.items() if not (
                 (k in ("lam", "mu") and ("equilibrium" in part or "nonequilibrium" in part))
                 or (k in ("equilibrium", "nonequilibrium") and ("lam" in part or "mu" in part)))}
-            merged.update({k: v for k, v in part.items() if k != "cells"})
+            merged.update({k: v for k, v in part.items() if k not in ("cells", "density")})
+            densities.append((pt.number("density", density, positive=True), cells))
             pairs.append((self.branches(_Table(self.name, merged, pt.where, _MATERIAL_KEYS), pt.where), cells))
             names.append(pt.where)
         rest = np.flatnonzero(owner == 0)
@@ -57,6 +58,11 @@ class MaterialReader:
             i = viscous.index(not viscous[0])
             raise t.error("part", f"{names[i]} is {'viscous' if viscous[i] else 'elastic'} but {names[0]} is not; "
                           "the materials of one body must all be viscous or all elastic.")
+        if any(rho != density for rho, _ in densities):
+            per_cell = np.full(n_cells, float(density))
+            for rho, cells in densities:
+                per_cell[cells] = rho
+            density = per_cell
         return [(m, c) for m, c in pairs if len(c)], density, mass
 
     def branches(self, t, where):

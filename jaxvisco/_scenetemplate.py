@@ -55,7 +55,8 @@ density = 8.93               # reference mass density (> 0), required
 mass = "consistent"          # or "lumped" (HRZ diagonal mass)
 # Parts of other materials: the cells of a cell group (Gmsh physical surface/volume,
 # Abaqus *ELSET, or the cells whose nodes all lie in a [groups] group) take the keys
-# given here (lam, mu, eta_dev, eta_vol or the branch tables) and [material]'s others.
+# given here (lam, mu, eta_dev, eta_vol or the branch tables, density) and [material]'s
+# others.
 # The materials of one body must all be viscous or all elastic. Without lam/mu in
 # [material] the parts must cover every cell.
 # [[material.part]]

@@ -130,13 +130,22 @@ class Discretization(eqx.Module):
 
     # -- mass ----------------------------------------------------------------------
     def mass_matvec(self, v, density):
-        """Consistent mass times a nodal field: $(Mv)_A = \\int\\rho N_A N_B v_B$."""
-        return density * self.scatter(jnp.einsum("eab,...ebi->...eai", self.mass_el, self.gather(v)))
+        """Consistent mass times a nodal field: $(Mv)_A = \\int\\rho N_A N_B v_B$;
+        `density` one number or one per cell (n_cells,)."""
+        if jnp.ndim(density) == 0:
+            return density * self.scatter(jnp.einsum("eab,...ebi->...eai", self.mass_el, self.gather(v)))
+        return self.scatter(jnp.einsum("e,eab,...ebi->...eai", density, self.mass_el, self.gather(v)))
 
     def mass_diagonal(self, density):
         """Diagonal of the consistent mass matrix (n_nodes,)."""
         diag_el = jnp.diagonal(self.mass_el, axis1=-2, axis2=-1)[..., None]
-        return density * self.scatter(diag_el)[:, 0]
+        if jnp.ndim(density) == 0:
+            return density * self.scatter(diag_el)[:, 0]
+        return self.scatter(density[:, None, None] * diag_el)[:, 0]
+
+    def cell_mass(self, density):
+        """Element mass matrices (n_cells, n_en, n_en) for `density` (one or per cell)."""
+        return (density if jnp.ndim(density) == 0 else density[:, None, None]) * self.mass_el
 
     def volume(self):
         return jnp.sum(self.JxW)

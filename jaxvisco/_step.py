@@ -129,7 +129,7 @@ def _unconstrained_residual(scheme, scene, ctx, U):
 
 def constraint_scale(scene, h):
     """Mass per node over the step: the scale of a constraint row (Dirichlet)."""
-    return scene.density * scene.disc.volume() / scene.disc.n_nodes / h
+    return scene.mass() / scene.disc.n_nodes / h
 
 
 def step_dissipation(scheme, scene, ctx, U):

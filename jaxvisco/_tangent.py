@@ -169,7 +169,7 @@ def form_tangent(scheme, scene, ctx, U, rotation=None) -> Tangent:
     # K[e, J, a, i, I, b, j] = h sum_q JxW sum_l W[J,l] dN[a,A] dPdF[l,i,A,I,j,B] dN[b,B]
     K = ctx.h * jnp.einsum("eq,Jl,eqaA,eqliAIjB,eqbB->eJaiIbj", disc.JxW, W, disc.dN, dPdF, disc.dN)
     A = jnp.asarray(m["A"])[:, 1:]
-    Mass = scene.density * jnp.einsum("JI,eab,ij->eJaiIbj", A, disc.mass_el, jnp.eye(d)) / ctx.h
+    Mass = jnp.einsum("JI,eab,ij->eJaiIbj", A, disc.cell_mass(scene.density), jnp.eye(d)) / ctx.h
     Ke = K + Mass
     if scene.fixed is not None:
         free = ~scene.fixed.array[disc.cells.array]  # (e, n_en, d)

@@ -120,14 +120,15 @@ def test_moving_support_eG_energy_balance_is_exact(k):
 # ------------------------------------------------------------------ materials per part
 
 
-def _two_part_scene(mat_left, mat_right, **kw):
+def _two_part_scene(mat_left, mat_right, rho_left=8.93, rho_right=8.93):
     mesh = jv.rectangle(4, 1, lx=4.0, ly=1.0)
     centres = np.asarray(mesh.points)[np.asarray(mesh.cells)].mean(axis=1)
     left = np.flatnonzero(centres[:, 0] < 2.0)
     right = np.flatnonzero(centres[:, 0] >= 2.0)
     X = np.asarray(mesh.points)
     v0 = jnp.stack([jnp.zeros(len(X)), 0.4 * jnp.asarray(X[:, 0]) - 0.8], -1)
-    return jv.Scene(mesh, [(mat_left, left), (mat_right, right)], 8.93, velocities=v0, **kw), mesh
+    density = np.where(centres[:, 0] < 2.0, rho_left, rho_right)  # one per cell
+    return jv.Scene(mesh, [(mat_left, left), (mat_right, right)], density, velocities=v0), mesh
 
 
 def _viscous(lam, mu, eta_dev, eta_vol):
@@ -137,9 +138,10 @@ def _viscous(lam, mu, eta_dev, eta_vol):
 
 @pytest.mark.timeout(300)
 def test_materials_per_part_equal_one_material_and_keep_the_balance():
-    """Two parts with the same material run exactly like one material; with a stiff, slow
-    left part and a soft, fast right part the run differs, and eG's energy balance,
-    D >= 0 and the momenta still hold exactly (the tangent stays exact: few iterations)."""
+    """Two parts with the same material and density run exactly like one material; with a
+    stiff, slow, heavy left part and a soft, fast right part the run differs, and eG's
+    energy balance, D >= 0 and the momenta still hold exactly (the tangent stays exact:
+    few iterations)."""
     mat = _viscous(30.0, 7.5, 10.0, 50.0)
     run = dict(t_end=1.0, dt=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
     same, mesh = _two_part_scene(mat, mat)
@@ -148,15 +150,20 @@ def test_materials_per_part_equal_one_material_and_keep_the_balance():
     a, b = jv.simulate(same, jv.eG(1), **run), jv.simulate(one, jv.eG(1), **run)
     np.testing.assert_allclose(np.asarray(a.x), np.asarray(b.x), rtol=0, atol=1e-12)
 
-    two, _ = _two_part_scene(_viscous(60.0, 15.0, 5.0, 25.0), _viscous(30.0, 7.5, 10.0, 50.0))
+    two, _ = _two_part_scene(_viscous(60.0, 15.0, 5.0, 25.0), _viscous(30.0, 7.5, 10.0, 50.0), rho_left=20.0)
     assert two.cell_material is not None
+    np.testing.assert_allclose(float(two.mass()), 2.0 * 20.0 + 2.0 * 8.93, rtol=1e-14)
+    p0 = np.asarray(two.initial_state().p)  # p = M v: each part's mass moves with it
+    v_left = 0.4 * 1.0 - 0.8  # mean of v_y = 0.4 x - 0.8 over the left part, x in [0, 2]
+    v_right = 0.4 * 3.0 - 0.8
+    np.testing.assert_allclose(p0[:, 1].sum(), 40.0 * v_left + 17.86 * v_right, rtol=1e-12)
     sol = jv.simulate(two, jv.eG(1), **run)
     assert np.max(np.abs(np.asarray(sol.x) - np.asarray(b.x))) > 1e-3
     H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
     assert np.max(np.abs(np.diff(H) + np.diff(D))) <= 1e-9 * H[0]
     assert np.all(np.diff(D) >= 0) and D[-1] > 0
     L = np.asarray(sol.linear_momentum)
-    momentum_scale = 8.93 * 4.0 * float(jnp.max(jnp.abs(two.v0)))  # mass times top speed
+    momentum_scale = float(two.mass()) * float(jnp.max(jnp.abs(two.v0)))  # mass times top speed
     assert np.max(np.abs(L - L[0])) <= 1e-12 * momentum_scale
     assert np.max(np.asarray(sol.newton_iterations)) <= 6
     # each cell's stress comes from its own material
@@ -180,6 +187,8 @@ def test_materials_per_part_errors():
     with pytest.raises(ValueError, match=r"material\[1\] differs in form from material\[0\]"):
         jv.Scene(mesh, [(a, [0, 1]), (elastic, [2, 3])], 1.0)
     scene = jv.Scene(mesh, [(a, [0, 1]), (b, [2, 3])], 1.0)
+    with pytest.raises(ValueError, match=r"density must be one number or one per cell, shape \(4,\); got shape \(3,\)"):
+        jv.Scene(mesh, a, np.ones(3))
     with pytest.raises(ValueError, match="take a scene of one material; this one has 2"):
         jv.with_parameters(scene, {"eta_dev": 1.0})
 

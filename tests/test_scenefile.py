@@ -388,6 +388,7 @@ cells = "soft"
 lam = 20000.0
 mu = 3000.0
 eta_vol = inf
+density = 4.0
 
 [initial]""")
 
@@ -404,6 +405,7 @@ def test_material_parts(tmp_path):
     np.testing.assert_array_equal(np.asarray(m.equilibrium.lam)[which], np.where(soft, 20000.0, 30000.0))
     np.testing.assert_array_equal(np.asarray(m.eta_dev)[which], 5000.0)  # from [material]
     np.testing.assert_array_equal(np.asarray(m.eta_vol)[which], np.where(soft, np.inf, 10000.0))
+    np.testing.assert_array_equal(np.asarray(s.density), np.where(soft, 4.0, 8.93))  # the part's own density
     # parts alone, covering every cell: a Gmsh cell group
     write_strip_gmsh(tmp_path / "strip.msh")
     text = '[mesh]\nfile = "strip.msh"\n' + BODY.replace("lam = 30000.0\nmu = 7500.0\n", "").replace(
@@ -422,7 +424,8 @@ def test_material_parts(tmp_path):
     ("eta_vol = inf\n", "eta_vol = inf\neta_dev = inf\n", "[material]: part: [[material.part]] 1 is elastic but "
      "[material] is not; the materials of one body must all be viscous or all elastic."),
     ("mu = 3000.0", "muu = 3000.0", "[[material.part]] 1: unknown key 'muu'; accepted: lam, mu, eta_dev, eta_vol, "
-     "equilibrium, nonequilibrium, cells."),
+     "equilibrium, nonequilibrium, cells, density."),
+    ("density = 4.0", "density = -1.0", "[[material.part]] 1: density: "),
     ("lam = 30000.0\nmu = 7500.0\n", "", "[material]: part: 4 of 8 cells (the first: cell 4) are in no "
      "[[material.part]]; give [material] lam/mu"),
 ])
