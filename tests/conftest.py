@@ -5,13 +5,26 @@ os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 ).strip()
 
-# The jaxvisco command turns on JAX's persistent compilation cache in the user's cache
-# directory; tests stay hermetic (tests that need a cache give their own directory).
-os.environ["JAXVISCO_CACHE_DIR"] = "off"
+# One persistent compilation cache for the whole test session, new and empty each time:
+# the suite compiles the same programs again and again (in every module, after
+# `jax.clear_caches()` below; in both pytest-xdist workers; in every command-line
+# subprocess), so this saves compile time without reusing anything from outside the
+# session. The first process creates it; xdist workers and subprocesses inherit the
+# variable. Tests that study the cache itself give their own directory.
+if "JAXVISCO_TEST_SESSION_CACHE" not in os.environ:
+    import atexit
+    import shutil
+    import tempfile
+
+    _session_cache = tempfile.mkdtemp(prefix="jaxvisco-test-cache-")
+    os.environ["JAXVISCO_TEST_SESSION_CACHE"] = _session_cache
+    atexit.register(shutil.rmtree, _session_cache, ignore_errors=True)
+os.environ["JAXVISCO_CACHE_DIR"] = os.environ["JAXVISCO_TEST_SESSION_CACHE"]
 
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_compilation_cache_dir", os.environ["JAXVISCO_TEST_SESSION_CACHE"])
 
 
 import pytest  # noqa: E402

@@ -13,10 +13,11 @@ import numpy as np
 
 def subprocess_env():
     """Environment for a jaxvisco subprocess: the tests' cheap XLA optimization, unbuffered
-    output (progress lines arrive as they are printed), no persistent compilation cache
-    (the command would use the user's; tests that want one set JAXVISCO_CACHE_DIR)."""
+    output (progress lines arrive as they are printed), the test session's compilation
+    cache (conftest.py; never the user's; tests that study the cache set their own
+    JAXVISCO_CACHE_DIR)."""
     env = dict(os.environ)
-    env["JAXVISCO_CACHE_DIR"] = "off"
+    env["JAXVISCO_CACHE_DIR"] = os.environ.get("JAXVISCO_TEST_SESSION_CACHE", "off")
     env["XLA_FLAGS"] = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
     env["PYTHONUNBUFFERED"] = "1"
     return env

@@ -13,7 +13,7 @@ import jaxvisco
 from jaxvisco.cli import chunk_size, energy_warning, main, parse_schedule
 
 
-@pytest.mark.parametrize("sub", [None, "paper", "run", "plot"])
+@pytest.mark.parametrize("sub", [None, "paper", "run", "plot", "scene-template"])
 def test_help(sub, capsys):
     argv = ["--help"] if sub is None else [sub, "--help"]
     with pytest.raises(SystemExit) as e:
