@@ -7,7 +7,10 @@ Issue #16's startup targets, each measured in fresh processes:
   with no compilation cache ("cold"), and in a second process that finds the programs
   the first one left in a fresh cache directory ("cached");
 - `jaxvisco paper --quick` (the README's first command after installing) likewise.
-Scene construction and imports are timed separately from the first call. Writes
+Scene construction and imports are timed separately from the first call; after it, a
+second identical call, a call with another t_end (11 steps: the same default capacity,
+12 slots, so no compilation) and the same with `max_steps=11` (an exact capacity: a new
+program, what every new step count cost before capacities were bucketed). Writes
 benchmarks/results/startup.json (medians over the repeats, and every repeat).
 """
 
@@ -37,8 +40,12 @@ sol = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.1)
 t3 = time.perf_counter()
 sol = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.1)
 t4 = time.perf_counter()
+sol = jv.simulate(scene, jv.eG(1), t_end=1.1, dt=0.1)  # 11 steps: the same capacity (12) as 10
+t5 = time.perf_counter()
+sol = jv.simulate(scene, jv.eG(1), t_end=1.1, dt=0.1, max_steps=11)  # exact capacity: compiles (as before)
+t6 = time.perf_counter()
 print("RESULT " + json.dumps(dict(import_s=t1 - t0, scene_s=t2 - t1, first_call_s=t3 - t2, second_call_s=t4 - t3,
-                                  status=sol.status)))
+                                  other_t_end_s=t5 - t4, exact_capacity_s=t6 - t5, status=sol.status)))
 """
 
 
@@ -79,6 +86,8 @@ def main(argv=None):
     summary = dict(first_call_cold_s=med(lambda r: r["cold"]["first_call_s"]),
                    first_call_cached_s=med(lambda r: r["cached"]["first_call_s"]),
                    second_call_s=med(lambda r: r["cold"]["second_call_s"]),
+                   other_t_end_s=med(lambda r: r["cold"]["other_t_end_s"]),
+                   exact_capacity_s=med(lambda r: r["cold"]["exact_capacity_s"]),
                    import_s=med(lambda r: r["cold"]["import_s"]), scene_s=med(lambda r: r["cold"]["scene_s"]))
     if not a.no_paper:
         summary.update(paper_quick_cold_s=med(lambda r: r["paper_cold_s"]),
