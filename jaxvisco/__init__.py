@@ -49,6 +49,8 @@ from ._schedule import StepTo as StepTo
 from ._simulate import simulate as simulate
 from ._solution import Solution as Solution
 from ._solution import SolverError as SolverError
+from ._stepsize import PIDController as PIDController
+from ._stepsize import SaveAt as SaveAt
 from ._time_element import (
     AbstractTimeElement as AbstractTimeElement,
 )

@@ -18,7 +18,8 @@ documents each one; paths are relative to the scene file):
 - ``[[load]]``: ``nodes``, ``force`` (on each node), ``time``.
 - ``[[traction]]``: ``facets``, ``traction`` or ``pressure``, ``time``.
 - ``[integrator]``: ``name``, ``order``; ``[solver]``: `NewtonKrylov`'s keywords.
-- ``[time]``: ``t_end``, ``dt`` or ``schedule``, ``max_halvings``.
+- ``[time]``: ``t_end``, ``dt`` or ``schedule``, ``max_halvings``; or ``rtol``/``atol``
+  (error-controlled steps; ``dt`` the first step tried).
 - ``[output]``: ``file``, ``save_every``, ``save_gamma``, ``chunk``, ``commit_every``.
 
 A time function is a table ``{ type = "step", at = 1.0, ... }`` of a small fixed set
@@ -59,7 +60,9 @@ class SceneFile:
 
     `scene`: the `Scene`; `integrator`; `steps`: the `StepTo` from 0 to `t_end`; `dt`:
     the step or schedule ``((t_until, dt), ...)`` it came from; `solver`: the
-    `NewtonKrylov` settings; `max_halvings`; `output`: dict with ``file`` (resolved
+    `NewtonKrylov` settings; `max_halvings`; `rtol`, `atol`: the tolerances of
+    error-controlled steps (None for a fixed dt or schedule; then `steps` is None and `dt`
+    the first step tried, or None); `output`: dict with ``file`` (resolved
     against the scene file's folder), ``save_every``, ``save_gamma``, ``chunk``,
     ``commit_every``; `source`: the file's text; `path`; `base_dir`: where relative paths
     start.
@@ -76,6 +79,8 @@ class SceneFile:
     source: str
     path: str
     base_dir: str
+    rtol: object = None
+    atol: object = None
 
 
 class _Reader(_MaterialReader):
@@ -335,26 +340,38 @@ class _Reader(_MaterialReader):
         except ValueError as e:
             raise ValueError(f"{self.name}: [solver]: {e}") from None
 
-        t = self.table("time", ("t_end", "dt", "schedule", "max_halvings"))
-        if t.has("dt") == t.has("schedule"):
-            raise t.error("dt", "give either dt (a constant step) or schedule = [[t_until, dt], ...], not both."
-                          if t.has("dt") else "missing: give dt = STEP or schedule = [[t_until, dt], ...].")
-        if t.has("dt"):
-            dt = t.number("dt", positive=True)
+        t = self.table("time", ("t_end", "dt", "schedule", "max_halvings", "rtol", "atol"))
+        rtol = atol = None
+        if t.has("rtol") or t.has("atol"):  # error-controlled steps; dt is the first step tried
+            if t.has("schedule"):
+                raise t.error("schedule", "a schedule fixes the steps; with rtol/atol (error-controlled steps) give "
+                              "no schedule (dt, if given, is the first step tried).")
+            rtol = t.number("rtol", t.number("atol", None, positive=True) if t.has("atol") else None, positive=True)
+            atol = t.number("atol", rtol, positive=True)
+            dt = t.number("dt", positive=True) if t.has("dt") else None
             t_end = t.number("t_end", positive=True)
+            steps = None
         else:
-            s = t.raw("schedule")
-            ok = isinstance(s, list) and s and all(isinstance(p, list) and len(p) == 2 and all(
-                isinstance(a, (int, float)) and not isinstance(a, bool) for a in p) for p in s)
-            if not ok:
-                raise t.error("schedule", f"got {s!r}; accepted: a list of [t_until, dt] pairs, e.g. "
-                              "[[20.0, 0.1], [60.0, 1.0]].")
-            dt = tuple((float(a), float(b)) for a, b in s)
-            t_end = t.number("t_end", dt[-1][0], positive=True)
-        try:
-            steps = StepTo.from_schedule(0.0, t_end, dt)
-        except ValueError as e:
-            raise t.error("schedule" if t.has("schedule") else "dt", str(e)) from None
+            if t.has("dt") == t.has("schedule"):
+                raise t.error("dt", "give either dt (a constant step) or schedule = [[t_until, dt], ...], not both."
+                              if t.has("dt") else "missing: give dt = STEP or schedule = [[t_until, dt], ...] (or "
+                              "rtol/atol for error-controlled steps).")
+            if t.has("dt"):
+                dt = t.number("dt", positive=True)
+                t_end = t.number("t_end", positive=True)
+            else:
+                s = t.raw("schedule")
+                ok = isinstance(s, list) and s and all(isinstance(p, list) and len(p) == 2 and all(
+                    isinstance(a, (int, float)) and not isinstance(a, bool) for a in p) for p in s)
+                if not ok:
+                    raise t.error("schedule", f"got {s!r}; accepted: a list of [t_until, dt] pairs, e.g. "
+                                  "[[20.0, 0.1], [60.0, 1.0]].")
+                dt = tuple((float(a), float(b)) for a, b in s)
+                t_end = t.number("t_end", dt[-1][0], positive=True)
+            try:
+                steps = StepTo.from_schedule(0.0, t_end, dt)
+            except ValueError as e:
+                raise t.error("schedule" if t.has("schedule") else "dt", str(e)) from None
         max_halvings = t.integer("max_halvings", 6, minimum=0, maximum=30)
 
         t = self.table("output", ("file", "save_every", "save_gamma", "chunk", "commit_every"), required=False)
@@ -363,7 +380,7 @@ class _Reader(_MaterialReader):
                       save_every=t.integer("save_every", 1, minimum=1), save_gamma=t.boolean("save_gamma", False),
                       chunk=t.integer("chunk", 50, minimum=1), commit_every=t.number("commit_every", 5.0, minimum=0))
         return dict(integrator=integrator, solver=solver, steps=steps, t_end=t_end, dt=dt, max_halvings=max_halvings,
-                    output=output)
+                    output=output, rtol=rtol, atol=atol)
 
 
 def _has_node_group(groups, name):

@@ -8,48 +8,31 @@ successes; a step that cannot be recovered ends the run with the last good state
 
 from typing import Optional
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._adaptive import run_adaptive
 from ._config import _top_level, jit
 from ._differentiable import layout, run_scan
+from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
 from ._newton import NewtonKrylov, solve_step
 from ._scene import Scene, State
-from ._schedule import step_times
+from ._schedule import StepTo, step_times
 from ._solution import DONE, EQUILIBRIUM, FAILED, RUNNING, Solution, SolverError
 from ._step import make_context, predictor, step_outcome
+from ._stepsize import PIDController, SaveAt
 from ._tangent import empty_tangent, position_pattern
-from ._tensor import small_solve
 from ._time_element import AbstractTimeElement
 from ._validation import check_finite
-
-
-def relative_kinetic_energy(scene: Scene, x, p):
-    """Kinetic energy relative to the best-fitting rigid motion (mass-weighted)."""
-    v = scene.velocity(p)
-    T = 0.5 * jnp.vdot(p, v)
-    c = jnp.mean(x, axis=0)
-    r = x - c
-    d = x.shape[-1]
-    modes = [jnp.zeros_like(x).at[:, i].set(1.0) for i in range(d)]
-    if d == 2:
-        modes.append(jnp.stack([-r[:, 1], r[:, 0]], -1))
-    else:
-        for axis in range(3):
-            e = jnp.zeros(3).at[axis].set(1.0)
-            modes.append(jnp.cross(e, r))
-    R = jnp.stack(modes)  # (m, n, d)
-    MR = jax.vmap(lambda u: scene.disc.mass_matvec(u, scene.density))(R)
-    G = jnp.einsum("and,bnd->ab", R, MR)
-    b = jnp.einsum("and,nd->a", R, p)
-    return T - 0.5 * jnp.dot(b, small_solve(G, b))
 
 
 def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, save_every=1,
              solver: NewtonKrylov = NewtonKrylov(), save_gamma=False, stop_at_equilibrium=None,
              max_halvings=6, initial_state: Optional[State] = None, max_steps=None,
-             throw=True, initial_velocity=None, differentiable=False, checkpoint_every=None) -> Solution:
+             throw=True, initial_velocity=None, differentiable=False, checkpoint_every=None,
+             stepsize_controller: Optional[PIDController] = None, saveat: Optional[SaveAt] = None) -> Solution:
     """Integrate a scene in time.
 
     **Arguments:**
@@ -98,15 +81,6 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
         raise ValueError(f"stop_at_equilibrium must be a positive tolerance or None, got {stop_at_equilibrium!r}.")
     if not isinstance(max_halvings, (int, np.integer)) or not 0 <= max_halvings <= 30:
         raise ValueError(f"max_halvings must be an integer in [0, 30], got {max_halvings!r}.")
-    hs, ts = step_times(t0, t_end, dt)
-    t0, te = ts[0], ts[1:]
-    n_active = len(hs)
-    if max_steps is not None:
-        if int(max_steps) < n_active:
-            raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
-        hs, te = _padded(hs, te, int(max_steps))
-    elif not differentiable and _top_level():  # traced callers keep arrays of the run's length
-        hs, te = _padded(hs, te, capacity(n_active))
     state0 = scene.initial_state() if initial_state is None else initial_state
     if initial_state is not None:
         ref = dict(x=scene.x0, p=scene.x0, gamma=scene.gamma0)
@@ -124,6 +98,24 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
         if v0.shape != state0.p.shape:
             raise ValueError(f"initial_velocity must have shape {state0.p.shape}, got {v0.shape}.")
         check_finite("initial_velocity", v0)
+    if saveat is not None and not isinstance(saveat, SaveAt):
+        raise TypeError(f"saveat must be a SaveAt(ts=...), got {saveat!r}.")
+    if stepsize_controller is not None:
+        return _adaptive(scene, integrator, stepsize_controller, t_end, dt, t0, save_every, solver, save_gamma,
+                         stop_at_equilibrium, state0, max_steps, throw, v0, use_v0, differentiable, checkpoint_every,
+                         saveat)
+    if saveat is not None:
+        raise ValueError("saveat=SaveAt(ts=...) (dense output) needs error-controlled steps "
+                         "(stepsize_controller=PIDController(...)); with constant steps use save_every.")
+    hs, ts = step_times(t0, t_end, dt)
+    t0, te = ts[0], ts[1:]
+    n_active = len(hs)
+    if max_steps is not None:
+        if int(max_steps) < n_active:
+            raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
+        hs, te = _padded(hs, te, int(max_steps))
+    elif not differentiable and _top_level():  # traced callers keep arrays of the run's length
+        hs, te = _padded(hs, te, capacity(n_active))
     if differentiable:
         if stop_at_equilibrium is not None:
             raise ValueError("stop_at_equilibrium is not available with differentiable=True "
@@ -143,6 +135,68 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
                int(max_halvings), v0, use_v0)
     return _finish(sol, integrator, int(max_halvings), throw)
+
+
+def _adaptive(scene, integrator, ctrl, t_end, dt, t0, save_every, solver, save_gamma, stop_at_equilibrium, state0,
+              max_steps, throw, v0, use_v0, differentiable, checkpoint_every, saveat):
+    """`simulate` with error-controlled steps (`run_adaptive`)."""
+    if not isinstance(ctrl, PIDController):
+        raise TypeError(f"stepsize_controller must be a PIDController(rtol=..., atol=...), got {ctrl!r}.")
+    t0 = 0.0 if t0 is None else float(t0)
+    if t_end is None or not (np.isfinite(float(t_end)) and np.isfinite(t0) and float(t_end) > t0):
+        raise ValueError(f"an adaptive run needs finite t0 < t_end, got t0 = {t0!r}, t_end = {t_end!r}.")
+    t_end = float(t_end)
+    if dt is None:
+        h0 = 0.01 * (t_end - t0)
+    elif isinstance(dt, (int, float, np.integer, np.floating)) and not isinstance(dt, bool) and 0 < float(dt) < np.inf:
+        h0 = float(dt)
+    else:
+        raise ValueError(f"with a stepsize_controller, dt is the first step to try (a positive number) or None "
+                         f"(a hundredth of the run), got {dt!r}; schedules and StepTo fix the steps themselves.")
+    cap = 4096 if max_steps is None else int(max_steps)
+    if cap < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps!r}.")
+    if saveat is not None:
+        saveat.check(t0, t_end)
+    if differentiable:
+        # Step sizes are constants of the derivative (as in diffrax): find the accepted
+        # steps without derivatives, then differentiate the run along them.
+        no_grad = lambda tree: jax.tree_util.tree_map(  # noqa: E731
+            lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a, tree)
+        probe = _adaptive(no_grad(scene), integrator, ctrl, t_end, dt, t0, save_every, solver, False,
+                          None, no_grad(state0), max_steps, throw, no_grad(v0), use_v0, False, None, None)
+        if isinstance(probe.step_t, jax.core.Tracer):
+            raise ValueError("differentiable=True with a stepsize_controller needs the accepted steps as numbers: "
+                             "call it outside jax.jit/jax.vmap (jax.grad and jax.jvp are fine), or run the adaptive "
+                             "run first and differentiate simulate(..., dt=StepTo(...)) along its steps.")
+        if saveat is not None:
+            raise ValueError("saveat=SaveAt(ts=...) is not available with differentiable=True; the differentiable "
+                             "run saves at its steps (save_every).")
+        if probe.status != "done":
+            return probe
+        ts = np.concatenate([[t0], np.asarray(probe.step_t)])
+        return simulate(scene, integrator, None, StepTo(ts), save_every=save_every, solver=solver,
+                        save_gamma=save_gamma, initial_state=state0, throw=throw,
+                        initial_velocity=jnp.where(use_v0, v0, scene.velocity(state0.p)), differentiable=True,
+                        checkpoint_every=checkpoint_every)
+    sol, _ = run_adaptive(scene, integrator, solver, ctrl, state0, jnp.asarray(t0), jnp.asarray(t_end),
+                          jnp.asarray(h0), cap, int(save_every), bool(save_gamma),
+                          None if saveat is None else jnp.asarray(saveat.ts),
+                          None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)), v0, use_v0)
+    if isinstance(sol.n_saved, jax.core.Tracer):
+        return sol
+    sol = sol.trimmed()
+    if sol.status == "max_steps" and throw:
+        t = float(sol.step_t[-1]) if len(sol.step_t) else t0
+        raise SolverError(f"{integrator.name}: the adaptive run reached max_steps = {cap} accepted steps at t = {t:.6g} "
+                          f"before t_end = {t_end:g}; raise max_steps or loosen the tolerances (the state there is "
+                          "attached).", t, sol.state(-1), sol)
+    if sol.status == "failed" and throw:
+        t = float(sol.step_t[-1]) if len(sol.step_t) else t0
+        raise SolverError(f"{integrator.name}: the adaptive step after t = {t:.6g} did not converge at the smallest "
+                          f"step allowed (dtmin = {float(ctrl.dtmin):g}); the last good state is attached.",
+                          t, sol.state(-1), sol)
+    return sol
 
 
 def capacity(n):
@@ -181,22 +235,6 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
     diag0 = scene.diagnostics(state0)
     H0 = diag0["energy"]
     full = 2**max_halvings
-
-    def frame_buffers():
-        def buf(v):
-            v = jnp.asarray(v)
-            return jnp.zeros((n_frames,) + v.shape, v.dtype)
-        out = dict(t=buf(t0), x=buf(state0.x), p=buf(state0.p),
-                   gamma=buf(state0.gamma) if (save_gamma and state0.gamma is not None) else None,
-                   dissipated=buf(0.0), external_work=buf(0.0))
-        out.update({k: buf(v) for k, v in diag0.items()})
-        return out
-
-    def write(frames, idx, t, state, diag, dissipated, work):
-        vals = dict(t=t, x=state.x, p=state.p, dissipated=dissipated, external_work=work, **diag)
-        if frames["gamma"] is not None:
-            vals["gamma"] = state.gamma
-        return {k: (None if b is None else b.at[idx].set(vals[k])) for k, b in frames.items()}
 
     def advance(state, t, h, t_next, v, tan):
         """One nominal step from t to t_next = t + h, halved on failure (dyadic sub-steps;
@@ -240,15 +278,14 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
         dissipated, work = c["dissipated"] + a["D"], c["work"] + a["W"]
         status = jnp.where(failed, FAILED, RUNNING)
         if eq_tol is not None:
-            at_rest = (relative_kinetic_energy(scene, a["state"].x, a["state"].p) <= eq_tol * H0) & (
-                a["D"] <= eq_tol * H0)
+            at_rest = at_equilibrium(scene, a["state"], a["D"], eq_tol, H0)
             status = jnp.where((status == RUNNING) & at_rest, EQUILIBRIUM, status)
         status = jnp.where((status == RUNNING) & (i == n_steps - 1), DONE, status)
         save = ((i + 1) % save_every == 0) | (status != RUNNING)
         save = save & ~failed
 
         def do_save(frames):
-            return write(frames, c["n_saved"], a["t"], a["state"], scene.diagnostics(a["state"]), dissipated, work)
+            return write_frame(frames, c["n_saved"], a["t"], a["state"], scene.diagnostics(a["state"]), dissipated, work)
 
         frames = jax.lax.cond(save, do_save, lambda f: f, c["frames"])
         steps = c["steps"]
@@ -262,7 +299,8 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
                     n_saved=c["n_saved"] + save.astype(int), dissipated=dissipated, work=work, status=status,
                     n_done=c["n_done"] + (~failed).astype(int))
 
-    frames = write(frame_buffers(), 0, t0, state0, diag0, jnp.asarray(0.0), jnp.asarray(0.0))
+    frames = write_frame(frame_buffers(n_frames, t0, state0, diag0, save_gamma), 0, t0, state0, diag0,
+                         jnp.asarray(0.0), jnp.asarray(0.0))
     zeros_f, zeros_i = jnp.zeros(hs.shape[0]), jnp.zeros(hs.shape[0], dtype=int)
     steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i, chord_iterations=zeros_i,
                  residual=zeros_f, rejections=zeros_i)
@@ -271,10 +309,6 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
                 frames=frames, steps=steps, n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
                 work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))
     c = jax.lax.while_loop(cond, body, init)
-    f = c["frames"]
     return Solution(
-        t=f["t"], x=f["x"], p=f["p"], gamma=f["gamma"], energy=f["energy"], kinetic=f["kinetic"],
-        free_energy=f["free_energy"], dissipated=f["dissipated"], dissipation_rate=f["dissipation_rate"],
-        external_work=f["external_work"], linear_momentum=f["linear_momentum"],
-        angular_momentum=f["angular_momentum"], n_saved=c["n_saved"], n_steps=c["n_done"],
+        **frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["n_done"],
         status_code=c["status"], integrator=scheme.describe(), end_velocity=c["v"], **c["steps"])

@@ -10,8 +10,8 @@ from ._config import jit
 from ._io._layout import STEP_KEYS
 from ._scene import State
 
-RUNNING, FAILED, EQUILIBRIUM, DONE = 0, 1, 2, 3
-STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done"}
+RUNNING, FAILED, EQUILIBRIUM, DONE, MAX_STEPS = 0, 1, 2, 3, 4
+STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done", MAX_STEPS: "max_steps"}
 
 
 class SolverError(RuntimeError):

@@ -130,6 +130,54 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
                 t_last=float(ts[i]) if status != "failed" else float(np.asarray(sol.t)[-1]))
 
 
+def run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=None, chunk=50, save_every=1, solver=None,
+                         writer=None, save_gamma=False, label="", quiet=False, stream=None, initial_state=None,
+                         initial_velocity=None, should_stop=None):
+    """`run_chunked` for error-controlled steps (`controller`, a `PIDController`): calls
+    of at most `chunk` accepted steps (one compiled program), each committed to
+    `writer`, each continuing from the previous one's state, predictor velocity and last
+    accepted step. Returns the dict of `run_chunked`, with `h_last`."""
+    import jaxvisco as jv
+
+    stream = stream or sys.stderr
+    solver = solver or jv.NewtonKrylov()
+    state, v, t, h = initial_state, initial_velocity, float(t0), dt0
+    start = time.perf_counter()
+    if writer is not None and writer.n_frames == 0:
+        writer.write_initial_state(t, state, v)
+    status, n, newton, rejected = "done", 0, 0, 0
+    if not quiet:
+        print(f"{label}: adaptive steps (rtol = {float(controller.rtol):g}, atol = {float(controller.atol):g}) to "
+              f"t = {t_end:g}; frame 0 written, the first chunk compiles (~10-60 s)", file=stream, flush=True)
+    while True:
+        sol = jv.simulate(scene, integrator, t_end, h, t0=t, save_every=save_every, solver=solver, save_gamma=True,
+                          initial_state=state, throw=False, initial_velocity=v, max_steps=chunk,
+                          stepsize_controller=controller)
+        if writer is not None:
+            writer.append(sol, skip_first=True, gamma=save_gamma)
+        ns = int(len(np.asarray(sol.step_t)))
+        n += ns
+        its = np.asarray(sol.newton_iterations)
+        newton += int(its.sum())
+        rejected += int(np.asarray(sol.rejections).sum())
+        if ns:
+            state, v, t, h = sol.state(-1), sol.end_velocity, float(np.asarray(sol.step_t)[-1]), \
+                float(np.asarray(sol.step_h)[-1])
+        if not quiet:
+            print(f"{label}: t = {t:9.4f}  steps {n:6d} ({rejected} rejected)  h = {h if h else float('nan'):.4g}  "
+                  f"newton/step {its.mean() if ns else 0:4.1f}  H = {float(np.asarray(sol.energy)[-1]):.8g}",
+                  file=stream, flush=True)
+        if sol.status != "max_steps":
+            status = sol.status
+            break
+        if should_stop is not None and should_stop():
+            status = "interrupted"
+            break
+    state = jv.State(np.asarray(state.x), np.asarray(state.p), None if state.gamma is None else np.asarray(state.gamma))
+    return dict(status=status, steps=n, newton=newton, wall=time.perf_counter() - start, state=state, t_last=t,
+                h_last=h)
+
+
 # ---------------------------------------------------------------- scenes and integrators
 
 
@@ -400,7 +448,10 @@ def _scene_file_options(args):
     args.scene_source, args.scene_dir = sf.source, sf.base_dir
     if args.schedule is not None and args.t_end is None:
         args.t_end = parse_schedule(args.schedule)[-1][0]  # --schedule without --t-end: to its end
-    if args.dt is None and args.schedule is None:
+    if sf.rtol is not None and args.rtol is None and args.atol is None and args.schedule is None and args.dt is None:
+        args.rtol, args.atol = sf.rtol, sf.atol
+        args.dt = sf.dt
+    if args.dt is None and args.schedule is None and args.rtol is None and args.atol is None:
         if isinstance(sf.dt, tuple):
             args.schedule = ",".join(f"{a!r}:{b!r}" for a, b in sf.dt)
             origin = f"the schedule of {args.scene} ({args.schedule!r})"
@@ -424,30 +475,13 @@ def _run(args):
         args, restart = _resume_args(args)
     if args.dt is not None and args.schedule is not None:
         raise ValueError("give either --dt or --schedule, not both.")
+    if args.schedule is not None and (args.rtol is not None or args.atol is not None):
+        raise ValueError("--schedule fixes the steps; --rtol/--atol choose them: give one of the two.")
     sf, schedule_origin = _scene_file_options(args)
-    if args.mesh is not None and not os.path.isfile(args.mesh):
-        raise FileNotFoundError(f"mesh file {args.mesh!r} does not exist.")
-    if args.save_every < 1:
-        raise ValueError(f"--save-every must be >= 1, got {args.save_every}.")
-    if args.chunk < 1:
-        raise ValueError(f"--chunk must be >= 1, got {args.chunk}.")
-    if not (math.isfinite(args.commit_every) and args.commit_every >= 0):
-        raise ValueError(f"--commit-every must be a number of seconds >= 0 (0: every --chunk steps), "
-                         f"got {args.commit_every!r}.")
-    if not 0 <= args.max_halvings <= 30:
-        raise ValueError(f"--max-halvings must be an integer in [0, 30], got {args.max_halvings}.")
-    if args.t_end is not None and not math.isfinite(args.t_end):
-        raise ValueError(f"--t-end must be a finite time > 0, got {args.t_end!r}.")
-    if restart is None and os.path.exists(args.out) and not args.overwrite:
-        raise FileExistsError(f"results file {args.out!r} exists; pass --overwrite to replace it, or continue it "
-                              f"with --resume {args.out}.")
-    integrator = make_integrator(args.integrator, args.order)
-    if sf is not None:
-        scene = sf.scene
-    else:
-        scene = make_scene(dim=args.dim, refinement=args.refinement, element=args.element, mesh=args.mesh,
-                           lam=args.lam, mu=args.mu, density=args.density, eta_dev=args.eta_dev,
-                           eta_vol=args.eta_vol)
+    adaptive = args.rtol is not None or args.atol is not None
+    if adaptive:
+        return _run_adaptive(args, sf, restart)
+    integrator, scene = _run_setup(args, sf, restart)
     if args.schedule is not None:
         dt = parse_schedule(args.schedule)
         schedule_name = schedule_origin or f"--schedule {args.schedule!r}"
@@ -474,19 +508,9 @@ def _run(args):
         if not math.isclose(ts[done], restart.t, rel_tol=1e-9, abs_tol=1e-12):
             raise ValueError(f"{args.resume!r}: its {done} steps end at t = {restart.t:.17g}, but the stored schedule "
                              f"puts step {done} at t = {ts[done]:.17g}; it cannot be continued with --t-end {t_end:g}.")
-        if restart.state.x.shape != scene.x0.shape:
-            raise ValueError(f"{args.resume!r}: stored state has shape {restart.state.x.shape}, the scene has "
-                             f"{scene.x0.shape}.")
         ts = np.concatenate([[restart.t], ts[done + 1:]])
         state0, v0 = restart.state, restart.velocity
-    params = {k: v for k, v in vars(args).items() if k != "func"}
-    params.update(t_end=t_end, **({} if sf is not None else dict(dim=scene.dim)))
-    if restart is not None:
-        w = jv.ResultsWriter(args.out, append=True, attrs={"parameters": params})
-    else:
-        label = "scenefile:" + args.scene if sf is not None else ("mesh:" + args.mesh) if args.mesh else "lshape"
-        attrs = dict(scene=label, integrator=integrator.describe(), parameters=params)
-        w = jv.ResultsWriter(args.out, scene, attrs, overwrite=args.overwrite)
+    w = _open_writer(args, sf, scene, integrator, t_end, restart)
     status = "failed"
     try:
         with _StopOnSigint(args.quiet) as stop:
@@ -500,6 +524,59 @@ def _run(args):
         raise
     finally:
         w.close(status=status)
+    return _report(args, integrator, status, r)
+
+
+def _run_setup(args, sf, restart):
+    """Check the run options of `args`; the integrator and the scene."""
+    if args.mesh is not None and not os.path.isfile(args.mesh):
+        raise FileNotFoundError(f"mesh file {args.mesh!r} does not exist.")
+    if args.save_every < 1:
+        raise ValueError(f"--save-every must be >= 1, got {args.save_every}.")
+    if args.chunk < 1:
+        raise ValueError(f"--chunk must be >= 1, got {args.chunk}.")
+    if not (math.isfinite(args.commit_every) and args.commit_every >= 0):
+        raise ValueError(f"--commit-every must be a number of seconds >= 0 (0: every --chunk steps), "
+                         f"got {args.commit_every!r}.")
+    if not 0 <= args.max_halvings <= 30:
+        raise ValueError(f"--max-halvings must be an integer in [0, 30], got {args.max_halvings}.")
+    if args.t_end is not None and not math.isfinite(args.t_end):
+        raise ValueError(f"--t-end must be a finite time > 0, got {args.t_end!r}.")
+    if restart is None and os.path.exists(args.out) and not args.overwrite:
+        raise FileExistsError(f"results file {args.out!r} exists; pass --overwrite to replace it, or continue it "
+                              f"with --resume {args.out}.")
+    integrator = make_integrator(args.integrator, args.order)
+    if sf is not None:
+        scene = sf.scene
+    else:
+        scene = make_scene(dim=args.dim, refinement=args.refinement, element=args.element, mesh=args.mesh,
+                           lam=args.lam, mu=args.mu, density=args.density, eta_dev=args.eta_dev,
+                           eta_vol=args.eta_vol)
+    if restart is not None and restart.state.x.shape != scene.x0.shape:
+        raise ValueError(f"{args.resume!r}: stored state has shape {restart.state.x.shape}, the scene has "
+                         f"{scene.x0.shape}.")
+    return integrator, scene
+
+
+def _open_writer(args, sf, scene, integrator, t_end, restart):
+    """The results writer of a run: a new file, or the resumed one appended to."""
+    import jaxvisco as jv
+
+    params = {k: v for k, v in vars(args).items() if k != "func"}
+    params.update(t_end=t_end, **({} if sf is not None else dict(dim=scene.dim)))
+    if restart is not None:
+        w = jv.ResultsWriter(args.out, append=True, attrs={"parameters": params})
+    else:
+        label = "scenefile:" + args.scene if sf is not None else ("mesh:" + args.mesh) if args.mesh else "lshape"
+        attrs = dict(scene=label, integrator=integrator.describe(), parameters=params)
+        w = jv.ResultsWriter(args.out, scene, attrs, overwrite=args.overwrite)
+    return w
+
+
+def _report(args, integrator, status, r):
+    """The closing line of a run, and its exit status (a failed run raises)."""
+    import jaxvisco as jv
+
     saved = jv.read_results(args.out)
     H = saved["energy"]
     print(f"{integrator.name}: status={status} H0={H[0]:.8g} H_end={H[-1]:.8g} t={saved['t'][-1]:.6g} "
@@ -513,6 +590,43 @@ def _run(args):
               file=sys.stderr, flush=True)
         return 130
     return 0
+
+
+def _run_adaptive(args, sf, restart):
+    """`jaxvisco run` with error-controlled steps (--rtol/--atol)."""
+    import jaxvisco as jv
+
+    rtol = args.rtol if args.rtol is not None else args.atol
+    atol = args.atol if args.atol is not None else rtol
+    try:
+        controller = jv.PIDController(rtol=rtol, atol=atol)
+    except ValueError as e:
+        raise ValueError(f"--rtol/--atol: {e}") from None
+    integrator, scene = _run_setup(args, sf, restart)
+    t_end = 1.0 if args.t_end is None else args.t_end
+    t0, state0, v0, dt0 = 0.0, None, None, args.dt
+    if restart is not None:
+        if restart.t >= t_end * (1 - 1e-12):
+            raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} (t_end = {t_end:.6g}); "
+                             "give a later --t-end to continue it.")
+        t0, state0, v0 = restart.t, restart.state, restart.velocity
+        h = jv.read_results(args.resume)["step_h"]
+        dt0 = float(h[-1]) if len(h) else dt0
+    w = _open_writer(args, sf, scene, integrator, t_end, restart)
+    status = "failed"
+    try:
+        with _StopOnSigint(args.quiet) as stop:
+            r = run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=dt0, chunk=args.chunk,
+                                     save_every=args.save_every, writer=w, save_gamma=args.save_gamma,
+                                     label=integrator.name, quiet=args.quiet, initial_state=state0, initial_velocity=v0,
+                                     should_stop=stop, solver=None if sf is None else sf.solver)
+        status = r["status"]
+    except KeyboardInterrupt:
+        status = "interrupted"
+        raise
+    finally:
+        w.close(status=status)
+    return _report(args, integrator, status, r)
 
 
 def momentum_drift(values):
@@ -632,6 +746,11 @@ def build_parser():
     r.add_argument("--t-end", type=float, default=None, help="final time (default 1, or the schedule's last time)")
     r.add_argument("--dt", type=float, default=None, help="constant time step (default 0.1)")
     r.add_argument("--schedule", default=None, help="piecewise-constant steps 'T1:DT1,T2:DT2', e.g. '20:0.1,40:1.0'")
+    r.add_argument("--rtol", type=float, default=None,
+                   help="error-controlled steps with this relative tolerance (jaxvisco.PIDController; --atol "
+                   "defaults to it); --dt is then the first step tried")
+    r.add_argument("--atol", type=float, default=None, help="absolute tolerance of error-controlled steps "
+                   "(default: --rtol)")
     for name in ("eta-dev", "eta-vol", "lam", "mu", "density"):
         r.add_argument("--" + name, type=float, default=None, help=f"material parameter {name} (default: paper)")
     r.add_argument("--save-every", type=int, default=None, help="save every N-th step (default 1)")

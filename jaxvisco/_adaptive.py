@@ -1,0 +1,136 @@
+"""The error-controlled time loop: one compiled `lax.while_loop` over step attempts.
+
+Each attempt solves one time element of the proposed size, estimates its error from the
+integral defect of its time polynomial (`_estimate`), and is accepted (the state, the
+energies, the step statistics and any requested output times inside the step are
+written) or rejected (the step is retried smaller). The next size comes from the
+controller (`PIDController`). Accepted steps are exactly the steps of the scheme: the
+energy balance, D_n >= 0 and the momenta hold at every one as at a constant step.
+
+The capacity (`max_steps`) fixes the shapes of the compiled program: a run that needs
+more accepted steps ends with ``status == "max_steps"`` and everything up to there.
+"""
+
+import jax
+import jax.numpy as jnp
+
+from ._config import jit
+from ._estimate import dense_state, scaled_error
+from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
+from ._newton import solve_step
+from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
+from ._step import make_context, predictor, step_outcome
+from ._tangent import empty_tangent
+
+
+@jit
+def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save_every, save_gamma, ts_out,
+                 eq_tol, v0, use_v0):
+    """Integrate from `t0` to `t1` with error-controlled steps; at most `capacity`
+    accepted steps. Frames: every `save_every`-th accepted step (and the last), or, if
+    `ts_out` is an array, at those times (dense output)."""
+    order = scheme.k + 1
+    diag0 = scene.diagnostics(state0)
+    H0 = diag0["energy"]
+    dense = ts_out is not None
+    n_frames = ts_out.shape[0] if dense else 1 + -(-capacity // save_every)
+    frames = frame_buffers(n_frames, t0, state0, diag0, save_gamma)
+    if dense:
+        # Requested times at t0 are the initial state.
+        n_start = jnp.sum(ts_out <= t0)
+        frames = jax.lax.fori_loop(0, n_start, lambda j, f: write_frame(f, j, ts_out[j], state0, diag0,
+                                                                         jnp.asarray(0.0), jnp.asarray(0.0)), frames)
+    else:
+        n_start = jnp.asarray(1)
+        frames = write_frame(frames, 0, t0, state0, diag0, jnp.asarray(0.0), jnp.asarray(0.0))
+    end_eps = 1e-12 * jnp.maximum(jnp.abs(t1), jnp.abs(t0)) + 1e-300
+    max_attempts = 16 * capacity
+
+    def dense_frames(frames, ptr, ctx, U, t_next, D_before, D, W_before, W):
+        def cond(c):
+            return (c[1] < n_frames) & (ts_out[jnp.minimum(c[1], n_frames - 1)] <= t_next)
+
+        def body(c):
+            f, j = c
+            s = jnp.clip((ts_out[j] - ctx.t0) / ctx.h, 0.0, 1.0)
+            st = dense_state(scheme, scene, ctx, U, s)
+            return write_frame(f, j, ts_out[j], st, scene.diagnostics(st), D_before + s * D, W_before + s * W), j + 1
+
+        return jax.lax.while_loop(cond, body, (frames, ptr))
+
+    def cond(c):
+        return (c["status"] == RUNNING) & (c["attempts"] < max_attempts)
+
+    def body(c):
+        t, h = c["t"], c["h"]
+        last = t + h >= t1 - end_eps
+        h_try = jnp.where(last, t1 - t, h)
+        t_next = jnp.where(last, t1, t + h_try)
+        ctx = make_context(scene, c["state"], t, h_try)
+        r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
+        new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
+        err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol)
+        err = jnp.where(ok & jnp.isfinite(err), err, jnp.inf)
+        at_min = h_try <= ctrl.dtmin * (1.0 + 1e-12)
+        accept = ok & ((err <= 1.0) | at_min)
+        i = c["i"]
+        dissipated, work = c["dissipated"] + D, c["work"] + W
+
+        # Next step size.
+        grow = ctrl.accepted_factor(order, err, c["err1"], c["err2"])
+        shrink = jnp.where(ok, ctrl.rejected_factor(order, err), 0.5)
+        h_new = jnp.clip(h_try * jnp.where(accept, grow, shrink), ctrl.dtmin, ctrl.dtmax)
+        failed = ~accept & at_min
+
+        status = jnp.where(failed, FAILED, RUNNING)
+        if eq_tol is not None:
+            status = jnp.where(accept & at_equilibrium(scene, new, D, eq_tol, H0), EQUILIBRIUM, status)
+        status = jnp.where(accept & (status == RUNNING) & last, DONE, status)
+        status = jnp.where(accept & (status == RUNNING) & (i + 1 >= capacity), MAX_STEPS, status)
+
+        def on_accept(c):
+            if dense:
+                frames, n_saved = dense_frames(c["frames"], c["n_saved"], ctx, r.U, t_next, c["dissipated"], D,
+                                               c["work"], W)
+            else:
+                save = ((i + 1) % save_every == 0) | (status != RUNNING)
+                frames = jax.lax.cond(
+                    save, lambda f: write_frame(f, c["n_saved"], t_next, new, scene.diagnostics(new), dissipated, work),
+                    lambda f: f, c["frames"])
+                n_saved = c["n_saved"] + save.astype(int)
+            s = c["steps"]
+            steps = dict(step_t=s["step_t"].at[i].set(t_next), step_h=s["step_h"].at[i].set(h_try),
+                         newton_iterations=s["newton_iterations"].at[i].set(c["its"] + r.iterations),
+                         krylov_iterations=s["krylov_iterations"].at[i].set(c["kits"] + r.krylov_iterations),
+                         chord_iterations=s["chord_iterations"].at[i].set(c["chord"] + r.chord_iterations),
+                         residual=s["residual"].at[i].set(r.residual),
+                         rejections=s["rejections"].at[i].set(c["rej"]))
+            return dict(i=i + 1, state=new, t=t_next, v=v_end, frames=frames, steps=steps, n_saved=n_saved,
+                        dissipated=dissipated, work=work, err1=err, err2=c["err1"], its=jnp.asarray(0),
+                        kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0))
+
+        def on_reject(c):
+            return dict(i=i, state=c["state"], t=t, v=c["v"], frames=c["frames"], steps=c["steps"],
+                        n_saved=c["n_saved"], dissipated=c["dissipated"], work=c["work"], err1=c["err1"],
+                        err2=c["err2"], its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
+                        chord=c["chord"] + r.chord_iterations, rej=c["rej"] + 1)
+
+        keys = ("i", "state", "t", "v", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2", "its",
+                "kits", "chord", "rej")
+        out = jax.lax.cond(accept, on_accept, on_reject, {k: c[k] for k in keys})
+        out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1)
+        return out
+
+    zf, zi = jnp.zeros(capacity), jnp.zeros(capacity, dtype=int)
+    steps = dict(step_t=zf, step_h=zf, newton_iterations=zi, krylov_iterations=zi, chord_iterations=zi,
+                 residual=zf, rejections=zi)
+    one, zero = jnp.asarray(1.0), jnp.asarray(0)
+    init = dict(i=zero, state=state0, t=jnp.asarray(t0, float), h=jnp.clip(h0, ctrl.dtmin, ctrl.dtmax),
+                v=jnp.where(use_v0, v0, scene.velocity(state0.p)), tan=empty_tangent(scheme, scene), frames=frames,
+                steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
+                status=jnp.asarray(RUNNING), err1=one, err2=one, its=zero, kits=zero, chord=zero, rej=zero,
+                attempts=zero)
+    c = jax.lax.while_loop(cond, body, init)
+    status = jnp.where(c["status"] == RUNNING, FAILED, c["status"])  # attempts exhausted
+    return Solution(**frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["i"], status_code=status,
+                    integrator=scheme.describe(), end_velocity=c["v"], **c["steps"]), c["h"]

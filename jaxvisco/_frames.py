@@ -1,0 +1,63 @@
+"""What the compiled time loops share: the saved-frame buffers and the equilibrium test."""
+
+import jax
+import jax.numpy as jnp
+
+from ._scene import Scene
+from ._tensor import small_solve
+
+
+def relative_kinetic_energy(scene: Scene, x, p):
+    """Kinetic energy relative to the best-fitting rigid motion (mass-weighted)."""
+    v = scene.velocity(p)
+    T = 0.5 * jnp.vdot(p, v)
+    c = jnp.mean(x, axis=0)
+    r = x - c
+    d = x.shape[-1]
+    modes = [jnp.zeros_like(x).at[:, i].set(1.0) for i in range(d)]
+    if d == 2:
+        modes.append(jnp.stack([-r[:, 1], r[:, 0]], -1))
+    else:
+        for axis in range(3):
+            e = jnp.zeros(3).at[axis].set(1.0)
+            modes.append(jnp.cross(e, r))
+    R = jnp.stack(modes)  # (m, n, d)
+    MR = jax.vmap(lambda u: scene.disc.mass_matvec(u, scene.density))(R)
+    G = jnp.einsum("and,bnd->ab", R, MR)
+    b = jnp.einsum("and,nd->a", R, p)
+    return T - 0.5 * jnp.dot(b, small_solve(G, b))
+
+
+def at_equilibrium(scene, state, D, eq_tol, H0):
+    """The early-stop test: kinetic energy relative to the rigid motion and the step's
+    dissipated energy both at most `eq_tol * H0`."""
+    return (relative_kinetic_energy(scene, state.x, state.p) <= eq_tol * H0) & (D <= eq_tol * H0)
+
+
+def frame_buffers(n_frames, t0, state0, diag0, save_gamma):
+    """Zeroed buffers of `n_frames` saved frames shaped like the initial ones."""
+    def buf(v):
+        v = jnp.asarray(v)
+        return jnp.zeros((n_frames,) + v.shape, v.dtype)
+    out = dict(t=buf(t0), x=buf(state0.x), p=buf(state0.p),
+               gamma=buf(state0.gamma) if (save_gamma and state0.gamma is not None) else None,
+               dissipated=buf(0.0), external_work=buf(0.0))
+    out.update({k: buf(v) for k, v in diag0.items()})
+    return out
+
+
+def write_frame(frames, idx, t, state, diag, dissipated, work):
+    """`frames` with frame `idx` set."""
+    vals = dict(t=t, x=state.x, p=state.p, dissipated=dissipated, external_work=work, **diag)
+    if frames["gamma"] is not None:
+        vals["gamma"] = state.gamma
+    return {k: (None if b is None else b.at[idx].set(vals[k])) for k, b in frames.items()}
+
+
+def frame_fields(frames):
+    """The `Solution` fields of the frame buffers."""
+    f = frames
+    return dict(t=f["t"], x=f["x"], p=f["p"], gamma=f["gamma"], energy=f["energy"], kinetic=f["kinetic"],
+                free_energy=f["free_energy"], dissipated=f["dissipated"], dissipation_rate=f["dissipation_rate"],
+                external_work=f["external_work"], linear_momentum=f["linear_momentum"],
+                angular_momentum=f["angular_momentum"])

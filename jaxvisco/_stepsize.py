@@ -1,0 +1,150 @@
+"""How the step is chosen: `PIDController` (error-controlled steps) and `SaveAt` (output times).
+
+The controller follows diffrax's `PIDController` (same names and meaning of `rtol`,
+`atol`, `pcoeff`, `icoeff`, `dcoeff`, `dtmin`, `dtmax`, `factormin`, `factormax`,
+`safety`), with the error estimate of `_estimate` (order k + 1 for cG(k)/eG(k)) and one
+addition for implicit steps, as in Hairer & Wanner's Radau5: a proposed change of the
+step by a factor in ``[1, keep_band]`` keeps the step, so that the stored factorization
+of the condensed tangent (formed for one h) serves the next steps too.
+
+Every tolerance and bound is a float64 array leaf: a run with another `rtol` reuses the
+compiled program.
+"""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _positive(name, value, allow_zero=False, allow_inf=False):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"PIDController: {name} must be a number, got {value!r}.") from None
+    ok = (v >= 0 if allow_zero else v > 0) and (allow_inf or math.isfinite(v)) and not math.isnan(v)
+    if not ok:
+        accepted = ("a number >= 0" if allow_zero else "a number > 0") + ("" if allow_inf else ", finite")
+        raise ValueError(f"PIDController: {name} must be {accepted}; got {value!r}.")
+    return v
+
+
+class PIDController(eqx.Module):
+    """Error-controlled step sizes for `simulate(..., stepsize_controller=...)`.
+
+    A step is accepted where its error estimate, in units of ``atol + rtol * scale``,
+    is at most 1 (positions, momenta and the internal variable are scaled separately:
+    see `_estimate.scaled_error`); the next step is ``h * factor`` with
+
+    ``factor = safety * e_n^(-(pcoeff + icoeff + dcoeff)/r) * e_{n-1}^((pcoeff + 2 dcoeff)/r)
+    * e_{n-2}^(-dcoeff/r)``, ``r = k + 1``,
+
+    clipped to ``[factormin, factormax]`` (an integral controller by default). A rejected
+    step is retried with ``safety * e^(-1/r)`` (at most 1, at least `factormin`); a step
+    whose Newton solve fails, with half the step. Steps stay within ``[dtmin, dtmax]``;
+    a step at `dtmin` is accepted whatever its error (as diffrax's ``force_dtmin``), and
+    a Newton failure there ends the run (``status == "failed"``).
+
+    **Arguments:** `rtol`, `atol` (> 0 together: at least one positive);
+    `dtmin` (0), `dtmax` (inf); `pcoeff` (0), `icoeff` (1), `dcoeff` (0); `safety` (0.9);
+    `factormin` (0.2), `factormax` (10); `keep_band` (1.2: keep h where the proposed
+    factor lies in ``[1, keep_band]``; 1 disables it).
+
+    Step sizes are constants of the derivative: `jax.grad` of an adaptive run
+    differentiates the run along its accepted steps (see `simulate`).
+    """
+
+    rtol: jax.Array
+    atol: jax.Array
+    dtmin: jax.Array
+    dtmax: jax.Array
+    pcoeff: jax.Array
+    icoeff: jax.Array
+    dcoeff: jax.Array
+    safety: jax.Array
+    factormin: jax.Array
+    factormax: jax.Array
+    keep_band: jax.Array
+
+    def __init__(self, rtol, atol, dtmin=0.0, dtmax=math.inf, pcoeff=0.0, icoeff=1.0, dcoeff=0.0, safety=0.9,
+                 factormin=0.2, factormax=10.0, keep_band=1.2):
+        rtol = _positive("rtol", rtol, allow_zero=True)
+        atol = _positive("atol", atol, allow_zero=True)
+        if rtol == 0 and atol == 0:
+            raise ValueError("PIDController: rtol and atol are both 0; give at least one positive tolerance.")
+        dtmin = _positive("dtmin", dtmin, allow_zero=True)
+        dtmax = _positive("dtmax", dtmax, allow_inf=True)
+        if dtmin >= dtmax:
+            raise ValueError(f"PIDController: dtmin = {dtmin!r} must be less than dtmax = {dtmax!r}.")
+        pcoeff = _positive("pcoeff", pcoeff, allow_zero=True)
+        icoeff = _positive("icoeff", icoeff)
+        dcoeff = _positive("dcoeff", dcoeff, allow_zero=True)
+        safety = _positive("safety", safety)
+        if safety > 1:
+            raise ValueError(f"PIDController: safety must be in (0, 1], got {safety!r}.")
+        factormin = _positive("factormin", factormin)
+        factormax = _positive("factormax", factormax)
+        if not factormin < 1 < factormax:
+            raise ValueError(f"PIDController: need factormin < 1 < factormax, got factormin = {factormin!r}, "
+                             f"factormax = {factormax!r}.")
+        keep_band = _positive("keep_band", keep_band)
+        if not 1 <= keep_band <= factormax:
+            raise ValueError(f"PIDController: keep_band must be in [1, factormax], got {keep_band!r}.")
+        f = lambda v: jnp.asarray(v, dtype=jnp.float64)  # noqa: E731
+        self.rtol, self.atol, self.dtmin, self.dtmax = f(rtol), f(atol), f(dtmin), f(dtmax)
+        self.pcoeff, self.icoeff, self.dcoeff = f(pcoeff), f(icoeff), f(dcoeff)
+        self.safety, self.factormin, self.factormax, self.keep_band = f(safety), f(factormin), f(factormax), f(keep_band)
+
+    def accepted_factor(self, order, err, err1, err2):
+        """Step growth after an accepted step with errors `err` (this), `err1`, `err2`
+        (the two accepted before it; 1 where there were none)."""
+        tiny = jnp.finfo(jnp.float64).tiny
+        e0, e1, e2 = (jnp.maximum(e, tiny) for e in (err, err1, err2))
+        expo = lambda c: c / order  # noqa: E731
+        factor = (self.safety * e0 ** -expo(self.pcoeff + self.icoeff + self.dcoeff)
+                  * e1 ** expo(self.pcoeff + 2.0 * self.dcoeff) * e2 ** -expo(self.dcoeff))
+        factor = jnp.clip(factor, self.factormin, self.factormax)
+        return jnp.where((factor >= 1.0) & (factor <= self.keep_band), 1.0, factor)
+
+    def rejected_factor(self, order, err):
+        """Step reduction after a rejected step (`err` > 1)."""
+        return jnp.clip(self.safety * jnp.maximum(err, 1.0) ** (-1.0 / order), self.factormin, self.safety)
+
+    def __repr__(self):
+        return f"PIDController(rtol={float(self.rtol):g}, atol={float(self.atol):g})"
+
+
+class SaveAt:
+    """Which frames a run keeps: `ts`, times within ``[t0, t_end]`` (non-decreasing).
+
+    With an adaptive step (`PIDController`) a frame at a time inside a step is the
+    step's own time polynomial there (dense output: positions, momenta and internal
+    variable; no step is shortened to hit it). `dissipated` and `external_work` are
+    exact at step ends and linear in time within a step.
+    """
+
+    def __init__(self, ts):
+        try:
+            ts = np.array(ts, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"SaveAt(ts) needs a 1-D sequence of times, got {ts!r}.") from None
+        if ts.ndim != 1 or ts.size < 1:
+            raise ValueError(f"SaveAt(ts) needs a non-empty 1-D sequence of times, got shape {ts.shape}.")
+        if not np.all(np.isfinite(ts)):
+            i = int(np.flatnonzero(~np.isfinite(ts))[0])
+            raise ValueError(f"SaveAt: ts must be finite, got ts[{i}] = {float(ts[i])!r}.")
+        if np.any(np.diff(ts) < 0):
+            i = int(np.flatnonzero(np.diff(ts) < 0)[0])
+            raise ValueError(f"SaveAt: ts must not decrease, got ts[{i}] = {ts[i]!r} then ts[{i + 1}] = {ts[i + 1]!r}.")
+        ts.setflags(write=False)
+        self.ts = ts
+
+    def check(self, t0, t_end):
+        if self.ts[0] < t0 or self.ts[-1] > t_end:
+            raise ValueError(f"SaveAt: ts must lie within [t0, t_end] = [{t0:g}, {t_end:g}], got "
+                             f"[{self.ts[0]:g}, {self.ts[-1]:g}].")
+
+    def __repr__(self):
+        return f"SaveAt({self.ts.size} times from {self.ts[0]:g} to {self.ts[-1]:g})"

@@ -1,0 +1,233 @@
+"""Error-controlled eG(k) steps (`PIDController`): the identities of the scheme at every
+accepted step, the error estimate against the true local error, dense output, gradients
+along the accepted steps, the command line, and bad input.
+
+Compilation dominates: every run is the paper's coarse L-shape over a short time."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxvisco as jv
+from jaxvisco._estimate import defect_matrices, defects, dense_state
+from jaxvisco._newton import solve_step
+from jaxvisco._step import make_context, predictor, step_outcome
+from jaxvisco._tangent import empty_tangent
+from jaxvisco.cli import main
+
+TIGHT = jv.NewtonKrylov(rtol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def lshape():
+    return jv.scenes.lshape(dim=2, refinement=1)
+
+
+def _rms(a):
+    a = np.asarray(a)
+    return np.sqrt(np.mean(a * a))
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_identities_hold_at_every_accepted_step(lshape, k):
+    """Energy balance (<= 1e-9 H_0 per step), D_n >= 0 and both momenta (1e-10) at every
+    accepted step, with steps that change and at least one rejection."""
+    sol = jv.simulate(lshape, jv.eG(k), 3.0, 0.5, solver=TIGHT, stepsize_controller=jv.PIDController(1e-4, 1e-4))
+    assert sol.status == "done"
+    assert float(sol.t[-1]) == 3.0 and float(sol.step_t[-1]) == 3.0  # the last step ends at t_end exactly
+    h = np.asarray(sol.step_h)
+    assert np.allclose(np.cumsum(h), np.asarray(sol.step_t), rtol=0, atol=1e-12)
+    assert h.max() > 1.5 * h.min()  # the controller does change the step
+    assert int(np.sum(sol.rejections)) >= 1  # dt0 = 0.5 is too large for rtol 1e-4
+    H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
+    H0 = H[0]
+    assert len(H) == int(sol.n_steps) + 1
+    step_D = np.diff(D)
+    assert np.all(step_D >= 0.0), step_D / H0
+    assert np.max(np.abs(np.diff(H) + step_D)) <= 1e-9 * H0
+    P, L = np.asarray(sol.linear_momentum), np.asarray(sol.angular_momentum)
+    assert np.max(np.abs(P - P[0])) <= 1e-10 * np.max(np.abs(P[0]))
+    assert np.max(np.abs(L - L[0])) <= 1e-10 * np.max(np.abs(L[0]))
+
+
+@jax.jit
+def _estimated_and_interior(scene, state, t, h, v):
+    scheme = jv.eG(1)
+    ctx = make_context(scene, state, t, h)
+    r = solve_step(TIGHT, scheme, scene, ctx, predictor(scheme, scene, ctx, v), empty_tangent(scheme, scene))
+    e_x, e_g = defects(scheme, scene, ctx, r.U)
+    sigma = jnp.asarray(defect_matrices(1)[0])
+    states = jax.vmap(lambda s: dense_state(scheme, scene, ctx, r.U, s))(sigma)
+    return step_outcome(scheme, scene, ctx, r)[-1], e_x, e_g, states
+
+
+@pytest.mark.timeout(600)
+def test_estimate_matches_true_local_error(lshape):
+    """Estimated over true error of the step's polynomial at the check points (positions
+    and internal variable), eG(1) from two states of a run at two step sizes: within
+    [0.3, 3] (measured 0.6-1.2; benchmarks/adaptive_effectivity.py for eG(1..3)). The
+    true error: the same start state integrated by eG(1) with 24 sub-steps between
+    consecutive check points (its error is ~600 times smaller)."""
+    run = jv.simulate(lshape, jv.eG(1), 4.0, 0.1, save_gamma=True, solver=TIGHT)
+    sigma = defect_matrices(1)[0]
+    knots = np.concatenate([[0.0], sigma])
+    for frame in (0, 30):
+        state, t = run.state(frame), float(run.t[frame])
+        v = lshape.velocity(state.p)
+        for h in (0.1, 0.2):
+            ok, e_x, e_g, states = _estimated_and_interior(lshape, state, jnp.asarray(t), jnp.asarray(h), v)
+            assert ok
+            m = 24
+            ts = np.concatenate([t + h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(m) / m)
+                                 for i in range(len(sigma))] + [[t + h * sigma[-1]]])
+            ref = jv.simulate(lshape, jv.eG(1), None, jv.StepTo(ts), initial_state=state, save_gamma=True,
+                              initial_velocity=v, solver=TIGHT)
+            idx = m * np.arange(1, len(sigma) + 1)
+            true_x = np.asarray(states.x) - np.asarray(ref.x)[idx]
+            true_g = np.asarray(jv._tensor.sym_to_vec(states.gamma)) - np.asarray(
+                jv._tensor.sym_to_vec(ref.gamma))[idx]
+            eff_x = max(_rms(e) for e in e_x) / max(_rms(e) for e in true_x)
+            eff_g = max(_rms(e) for e in e_g) / max(_rms(e) for e in true_g)
+            assert 0.3 <= eff_x <= 3.0, (frame, h, eff_x)
+            assert 0.3 <= eff_g <= 3.0, (frame, h, eff_g)
+
+
+@pytest.mark.timeout(600)
+def test_dense_output(lshape):
+    """Frames at requested times come from the polynomial of the step that covers them:
+    against a fine constant-step run (eG(2), h = 0.005, whose steps end at those times)
+    they are as accurate as the step ends of the same run, and within 20 rtol of the
+    body's size. A requested time at t0 is the initial state."""
+    ts = np.linspace(0.0, 1.5, 16)
+    rtol = 1e-4
+    sol = jv.simulate(lshape, jv.eG(2), 1.5, None, solver=TIGHT, saveat=jv.SaveAt(ts), save_gamma=True,
+                      stepsize_controller=jv.PIDController(rtol, rtol))
+    assert sol.status == "done" and len(sol.t) == len(ts)
+    np.testing.assert_array_equal(np.asarray(sol.t), ts)
+    np.testing.assert_array_equal(np.asarray(sol.x[0]), np.asarray(lshape.x0))
+    step_t = np.asarray(sol.step_t)
+    inside = [i for i, t in enumerate(ts) if np.min(np.abs(step_t - t)) > 1e-3]
+    assert len(inside) >= 10  # most requested times fall inside steps
+    ref = jv.simulate(lshape, jv.eG(2), 1.5, 0.005, solver=TIGHT)
+    ref_t = np.asarray(ref.t)
+    at = [int(np.argmin(np.abs(ref_t - t))) for t in ts]
+    assert np.allclose(ref_t[at], ts, rtol=0, atol=1e-12)
+    x_ref = np.asarray(ref.x)[at]
+    size = _rms(x_ref[0] - x_ref[0].mean(0))
+    err = np.array([_rms(np.asarray(sol.x[i]) - x_ref[i]) for i in range(len(ts))]) / size
+    # The same run's error at its step ends (every accepted step saved).
+    steps = jv.simulate(lshape, jv.eG(2), 1.5, None, solver=TIGHT, stepsize_controller=jv.PIDController(rtol, rtol))
+    np.testing.assert_allclose(np.asarray(steps.step_t), step_t, rtol=0, atol=1e-12)
+    ref_fine = jv.simulate(lshape, jv.eG(2), None, jv.StepTo(np.unique(np.concatenate(
+        [np.linspace(0, 1.5, 301), step_t]))), solver=TIGHT)
+    fine_t = np.asarray(ref_fine.t)
+    node_err = max(_rms(np.asarray(steps.x[j + 1]) - np.asarray(ref_fine.x)[int(np.argmin(np.abs(fine_t - t)))])
+                   for j, t in enumerate(step_t)) / size
+    assert np.max(err[inside]) <= 3.0 * node_err + rtol, (err, node_err)
+    assert np.max(err) <= 20 * rtol, err
+    # Energy at the dense frames is that of the interpolated state.
+    H = [float(lshape.diagnostics(sol.state(i))["energy"]) for i in (3, 7)]
+    np.testing.assert_allclose(np.asarray(sol.energy)[[3, 7]], H, rtol=1e-12)
+
+
+@pytest.mark.timeout(900)
+def test_gradient_along_accepted_steps(lshape):
+    """`differentiable=True` with a controller differentiates the run along its accepted
+    steps (step sizes are constants of the derivative): jax.grad against central
+    differences of the same fixed step sequence."""
+    import equinox as eqx
+
+    ctrl = jv.PIDController(1e-3, 1e-3)
+    base = jv.simulate(lshape, jv.eG(1), 1.0, 0.1, stepsize_controller=ctrl, solver=TIGHT)
+    ts = np.concatenate([[0.0], np.asarray(base.step_t)])
+
+    def with_eta(log_eta):
+        return eqx.tree_at(lambda s: s.material.eta_dev, lshape, jnp.exp(log_eta))
+
+    def loss(log_eta):
+        sol = jv.simulate(with_eta(log_eta), jv.eG(1), 1.0, 0.1, stepsize_controller=ctrl, solver=TIGHT,
+                          differentiable=True)
+        return sol.dissipated[-1]
+
+    def fixed(log_eta):
+        return float(jv.simulate(with_eta(log_eta), jv.eG(1), None, jv.StepTo(ts), solver=TIGHT).dissipated[-1])
+
+    x0 = float(jnp.log(lshape.material.eta_dev))
+    g = float(jax.grad(loss)(jnp.asarray(x0)))
+    eps = 1e-4
+    fd = (fixed(x0 + eps) - fixed(x0 - eps)) / (2 * eps)
+    assert abs(g - fd) <= 1e-6 * abs(fd), (g, fd)
+    assert abs(float(loss(jnp.asarray(x0))) - float(base.dissipated[-1])) <= 1e-12 * abs(float(base.dissipated[-1]))
+
+
+@pytest.mark.timeout(600)
+def test_max_steps_and_early_stop(lshape):
+    ctrl = jv.PIDController(1e-4, 1e-4)
+    sol = jv.simulate(lshape, jv.eG(1), 2.0, 0.05, stepsize_controller=ctrl, max_steps=5, throw=False)
+    assert sol.status == "max_steps" and int(sol.n_steps) == 5 and len(sol.t) == 6
+    with pytest.raises(jv.SolverError, match="max_steps = 5"):
+        jv.simulate(lshape, jv.eG(1), 2.0, 0.05, stepsize_controller=ctrl, max_steps=5)
+    # A body at rest stops at equilibrium at once, with a growing step.
+    rest = jv.Scene(lshape.mesh, lshape.material, 8.93)
+    sol = jv.simulate(rest, jv.eG(1), 100.0, 0.1, stepsize_controller=ctrl, stop_at_equilibrium=1e-8, max_steps=5,
+                      throw=False)
+    assert sol.status in ("equilibrium", "done")
+
+
+def test_bad_input(lshape):
+    with pytest.raises(ValueError, match="rtol and atol are both 0"):
+        jv.PIDController(0.0, 0.0)
+    with pytest.raises(ValueError, match="rtol must be a number >= 0"):
+        jv.PIDController(-1e-3, 1e-3)
+    with pytest.raises(ValueError, match="dtmin = 1.0 must be less than dtmax = 0.5"):
+        jv.PIDController(1e-3, 1e-3, dtmin=1.0, dtmax=0.5)
+    with pytest.raises(ValueError, match="factormin < 1 < factormax"):
+        jv.PIDController(1e-3, 1e-3, factormax=0.9)
+    with pytest.raises(ValueError, match="safety must be in"):
+        jv.PIDController(1e-3, 1e-3, safety=1.5)
+    ctrl = jv.PIDController(1e-3, 1e-3)
+    with pytest.raises(ValueError, match="schedules and StepTo fix the steps"):
+        jv.simulate(lshape, jv.eG(1), 1.0, [(1.0, 0.1)], stepsize_controller=ctrl)
+    with pytest.raises(ValueError, match="needs error-controlled steps"):
+        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5]))
+    with pytest.raises(ValueError, match=r"ts must lie within \[t0, t_end\]"):
+        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5, 2.0]), stepsize_controller=ctrl)
+    with pytest.raises(ValueError, match="must not decrease"):
+        jv.SaveAt([0.5, 0.2])
+    with pytest.raises(TypeError, match="stepsize_controller must be a PIDController"):
+        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, stepsize_controller="pid")
+    with pytest.raises(ValueError, match="finite t0 < t_end"):
+        jv.simulate(lshape, jv.eG(1), None, 0.1, stepsize_controller=ctrl)
+
+
+@pytest.mark.timeout(900)
+def test_command_line_rtol_and_resume(tmp_path, lshape):
+    """`jaxvisco run --rtol`: chunks of accepted steps committed to the results file, then
+    `--resume --t-end` continues it with the stored tolerances; the file's step times
+    are those of the Python run (chunks restart the controller at the last step)."""
+    out = tmp_path / "a.h5"
+    assert main(["run", "--rtol", "1e-3", "--t-end", "0.6", "--chunk", "4", "--out", str(out), "--quiet"]) == 0
+    r = jv.read_results(out)
+    n1 = len(r["step_t"])
+    assert n1 >= 2 and abs(r["t"][-1] - 0.6) <= 1e-12
+    assert main(["run", "--resume", str(out), "--t-end", "1.0", "--quiet"]) == 0
+    r = jv.read_results(out)
+    assert len(r["step_t"]) > n1 and abs(r["t"][-1] - 1.0) <= 1e-12
+    H, D = r["energy"], r["dissipated"]
+    assert np.max(np.abs(np.diff(H) + np.diff(D))) <= 1e-9 * H[0]
+    assert np.all(np.diff(r["t"]) > 0)
+    assert main(["run", "--rtol", "1e-3", "--schedule", "1:0.1", "--out", str(tmp_path / "b.h5")]) == 2
+
+
+def test_scene_file_tolerances(tmp_path):
+    text = open(jv.__file__.replace("__init__.py", "../examples/scenes/paper.toml")).read()
+    text = text.replace("schedule = [[20.0, 0.1], [24.0, 1.0]]   # h = 0.1 up to t = 20, then h = 1",
+                        "t_end = 2.0\nrtol = 1e-4\ndt = 0.05")
+    (tmp_path / "p.toml").write_text(text)
+    sf = jv.read_scene_file(tmp_path / "p.toml")
+    assert (sf.rtol, sf.atol, sf.dt, sf.t_end, sf.steps) == (1e-4, 1e-4, 0.05, 2.0, None)
+    (tmp_path / "q.toml").write_text(text.replace("dt = 0.05", "schedule = [[2.0, 0.1]]"))
+    with pytest.raises(ValueError, match="a schedule fixes the steps"):
+        jv.read_scene_file(tmp_path / "q.toml")
