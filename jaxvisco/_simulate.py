@@ -71,6 +71,18 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
       (default ceil(sqrt(frames)): reverse-mode memory grows like the square root of
       the number of steps).
 
+    - `stepsize_controller`: `PIDController(rtol, atol, ...)` for error-controlled steps
+      (see `_stepsize`, `_estimate`): `dt` is then the first step tried (a number, or
+      None: a hundredth of the run), `max_steps` the capacity of accepted steps (default
+      4096; frames: every `save_every`-th accepted step, so memory grows with it), and
+      a run that needs more ends with `status == "max_steps"` (`SolverError` with
+      `throw`). `max_halvings` does not apply (the controller retries smaller steps
+      down to its `dtmin`). With `differentiable=True` the run is first made without
+      derivatives to find its accepted steps, then differentiated along them (steps
+      are constants of the derivative, as in diffrax; not under `jax.jit`/`jax.vmap`).
+    - `saveat`: `SaveAt(ts)`: frames at the times `ts` (adaptive runs only), each from
+      the time polynomial of the step that covers it.
+
     **Returns:** a `Solution` (trimmed to the saved frames when called outside `jit`).
     """
     if not isinstance(integrator, AbstractTimeElement):

@@ -35,7 +35,8 @@ class Solution(eqx.Module):
     Steps: `step_t` (end time), `step_h`, `newton_iterations` (Newton–Krylov
     iterations), `krylov_iterations`, `chord_iterations` (iterations on the stored
     factorization, `NewtonKrylov(chord=...)`), `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
-    one of "done", "equilibrium", "failed".
+    one of "done", "equilibrium", "failed", "max_steps" (an adaptive run that used all
+    its `max_steps` accepted steps before `t_end`).
     """
 
     t: jax.Array
