@@ -24,22 +24,7 @@ class StepTo:
     """
 
     def __init__(self, ts):
-        try:
-            ts = np.array(ts, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"StepTo needs a 1-D sequence of times, got {ts!r}.") from None
-        if ts.ndim != 1 or ts.size < 2:
-            raise ValueError(f"StepTo needs at least two times (a start and one step end), got shape {ts.shape}.")
-        if not np.all(np.isfinite(ts)):
-            i = int(np.flatnonzero(~np.isfinite(ts))[0])
-            raise ValueError(f"StepTo times must be finite, got ts[{i}] = {float(ts[i])!r}.")
-        steps = np.diff(ts)
-        if not np.all(steps > 0):
-            i = int(np.flatnonzero(~(steps > 0))[0])
-            raise ValueError(f"StepTo times must increase strictly, got ts[{i}] = {float(ts[i])!r} then "
-                             f"ts[{i + 1}] = {float(ts[i + 1])!r}.")
-        ts.setflags(write=False)
-        self.ts = ts
+        self.ts = checked_times(ts, "StepTo", 2, strict=True)
 
     @classmethod
     def from_schedule(cls, t0, t_end, dt):
@@ -59,6 +44,29 @@ class StepTo:
 
     def __repr__(self):
         return f"StepTo({len(self)} steps from t = {self.t0:.17g} to {self.t_end:.17g})"
+
+
+def checked_times(ts, name, min_size, strict):
+    """`ts` as a read-only float64 array, checked: 1-D, at least `min_size` entries,
+    finite, increasing (strictly if `strict`)."""
+    try:
+        ts = np.array(ts, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} needs a 1-D sequence of times, got {ts!r}.") from None
+    if ts.ndim != 1 or ts.size < min_size:
+        raise ValueError(f"{name} needs a 1-D sequence of at least {min_size} time(s)"
+                         f"{' (a start and one step end)' if min_size == 2 else ''}, got shape {ts.shape}.")
+    if not np.all(np.isfinite(ts)):
+        i = int(np.flatnonzero(~np.isfinite(ts))[0])
+        raise ValueError(f"{name} times must be finite, got ts[{i}] = {float(ts[i])!r}.")
+    steps = np.diff(ts)
+    bad = ~(steps > 0) if strict else steps < 0
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name} times must {'increase strictly' if strict else 'not decrease'}, got "
+                         f"ts[{i}] = {float(ts[i])!r} then ts[{i + 1}] = {float(ts[i + 1])!r}.")
+    ts.setflags(write=False)
+    return ts
 
 
 def _pieces(dt):

@@ -16,7 +16,8 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
+
+from ._schedule import checked_times
 
 
 def _positive(name, value, allow_zero=False, allow_inf=False):
@@ -126,20 +127,7 @@ class SaveAt:
     """
 
     def __init__(self, ts):
-        try:
-            ts = np.array(ts, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"SaveAt(ts) needs a 1-D sequence of times, got {ts!r}.") from None
-        if ts.ndim != 1 or ts.size < 1:
-            raise ValueError(f"SaveAt(ts) needs a non-empty 1-D sequence of times, got shape {ts.shape}.")
-        if not np.all(np.isfinite(ts)):
-            i = int(np.flatnonzero(~np.isfinite(ts))[0])
-            raise ValueError(f"SaveAt: ts must be finite, got ts[{i}] = {float(ts[i])!r}.")
-        if np.any(np.diff(ts) < 0):
-            i = int(np.flatnonzero(np.diff(ts) < 0)[0])
-            raise ValueError(f"SaveAt: ts must not decrease, got ts[{i}] = {ts[i]!r} then ts[{i + 1}] = {ts[i + 1]!r}.")
-        ts.setflags(write=False)
-        self.ts = ts
+        self.ts = checked_times(ts, "SaveAt", 1, strict=False)
 
     def check(self, t0, t_end):
         if self.ts[0] < t0 or self.ts[-1] > t_end:

@@ -511,13 +511,20 @@ def _run(args):
         ts = np.concatenate([[restart.t], ts[done + 1:]])
         state0, v0 = restart.state, restart.velocity
     w = _open_writer(args, sf, scene, integrator, t_end, restart)
+    return _write_run(args, integrator, w, lambda stop: run_chunked(
+        scene, integrator, jv.StepTo(ts), chunk=c, commit_every=args.commit_every, save_every=args.save_every,
+        writer=w, save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet, initial_state=state0,
+        initial_velocity=v0, should_stop=stop, max_halvings=args.max_halvings,
+        solver=None if sf is None else sf.solver))
+
+
+def _write_run(args, integrator, w, go):
+    """Run `go(should_stop)` into the open writer `w`, close it with the run's status
+    (also when interrupted or failing), and report."""
     status = "failed"
     try:
         with _StopOnSigint(args.quiet) as stop:
-            r = run_chunked(scene, integrator, jv.StepTo(ts), chunk=c, commit_every=args.commit_every,
-                            save_every=args.save_every, writer=w, save_gamma=args.save_gamma, label=integrator.name,
-                            quiet=args.quiet, initial_state=state0, initial_velocity=v0, should_stop=stop,
-                            max_halvings=args.max_halvings, solver=None if sf is None else sf.solver)
+            r = go(stop)
         status = r["status"]
     except KeyboardInterrupt:
         status = "interrupted"
@@ -613,20 +620,10 @@ def _run_adaptive(args, sf, restart):
         h = jv.read_results(args.resume)["step_h"]
         dt0 = float(h[-1]) if len(h) else dt0
     w = _open_writer(args, sf, scene, integrator, t_end, restart)
-    status = "failed"
-    try:
-        with _StopOnSigint(args.quiet) as stop:
-            r = run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=dt0, chunk=args.chunk,
-                                     save_every=args.save_every, writer=w, save_gamma=args.save_gamma,
-                                     label=integrator.name, quiet=args.quiet, initial_state=state0, initial_velocity=v0,
-                                     should_stop=stop, solver=None if sf is None else sf.solver)
-        status = r["status"]
-    except KeyboardInterrupt:
-        status = "interrupted"
-        raise
-    finally:
-        w.close(status=status)
-    return _report(args, integrator, status, r)
+    return _write_run(args, integrator, w, lambda stop: run_adaptive_chunked(
+        scene, integrator, controller, t0, t_end, dt0=dt0, chunk=args.chunk, save_every=args.save_every, writer=w,
+        save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet, initial_state=state0,
+        initial_velocity=v0, should_stop=stop, solver=None if sf is None else sf.solver))
 
 
 def momentum_drift(values):
