@@ -1,18 +1,24 @@
 """Work–precision: wall time against error on the 2D L-shape, jaxvisco against ODE peers.
 
-    python benchmarks/work_precision.py [--quick] [--refinements 1,2] [--t-end 10]
+    python benchmarks/work_precision.py [--quick] [--refinements 1,3] [--t-end 10] [--adaptive-only]
 
-The 2D L-shape (refinement 1 and 2) with a *lumped* mass matrix for every method (the
-peers need a sparse Jacobian, and with the consistent mass ẋ = M⁻¹p makes it dense), over
-t ∈ [0, T]. Error = max(relative error of the positions at T, relative error of H(T))
-against a reference: eG(3) with a tiny step, cross-checked by scipy Radau at rtol 1e-12
-(their difference is reported). Methods: cG(1..3), eG(1..3), Newmark, Midpoint over a
-range of steps; scipy `solve_ivp` Radau and BDF (exact sparse Jacobian from
-`jaxvisco.semidiscrete`), diffrax Kvaerno5 and Kvaerno3 (PID step control, their default
-root finder: a dense Jacobian by forward AD, LU by lineax — diffrax has no sparse path)
-over ranges of rtol = atol. Wall time is measured after compilation (median of repeats);
-compile time is reported separately. Writes benchmarks/results/work_precision.json and
-work_precision.png.
+The 2D L-shape (refinement 1 and 2 by default; issue #18 asks for 1 and 3) with a *lumped*
+mass matrix for every method (the peers need a sparse Jacobian, and with the consistent
+mass ẋ = M⁻¹p makes it dense), over t ∈ [0, T]. Error = max(relative error of the
+positions at T, relative error of H(T)) against a reference: eG(3) with a tiny step,
+cross-checked by scipy Radau at rtol 1e-12 (or, `--check eG-2h`, by eG(3) at twice the
+step; their difference is reported). The relative error of the cumulative dissipated
+energy D(T) is reported beside it (`error_D`; jaxvisco runs only: the ODE peers do not
+integrate D, so theirs is null). Methods: cG(1..3), eG(1..3), Newmark, Midpoint over a
+range of constant steps; eG(1..3) with error-controlled steps (`PIDController`,
+"eG(k) adaptive") over rtol = atol; scipy `solve_ivp` Radau and BDF (exact sparse
+Jacobian from `jaxvisco.semidiscrete`), diffrax Kvaerno5 and Kvaerno3 (PID step control,
+their default root finder: a dense Jacobian by forward AD, LU by lineax — diffrax has no
+sparse path) over the same rtol = atol. Wall time is measured after compilation (median
+of repeats); compile time is reported separately. The summary (`adaptive_summary`) gives,
+at errors 1e-3, 1e-4 and 1e-6 (log-log interpolation along each curve), the wall time of
+the best adaptive eG and each peer's wall time over it. Writes
+benchmarks/results/work_precision.json and work_precision.png.
 """
 
 import argparse
@@ -33,12 +39,22 @@ import numpy as np  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 TARGET = 1e-6
+TARGETS = (1e-3, 1e-4, 1e-6)  # the errors of the adaptive summary
+PEERS = ("scipy", "diffrax")
+ADAPTIVE = " adaptive"  # suffix of the error-controlled jaxvisco methods
 
 
 def _errors(x, H, ref):
     ex = rel(x, ref["x"])
     eH = abs(float(H) - ref["H"]) / abs(ref["H"])
     return ex, eH, max(ex, eH)
+
+
+def _error_D(D, ref):
+    """Relative error of the cumulative dissipated energy at T (None without a reference D)."""
+    if ref.get("D") is None or not np.isfinite(ref["D"]):
+        return None
+    return abs(float(D) - ref["D"]) / abs(ref["D"])
 
 
 def run_jaxvisco(scene, name, scheme, hs, T, ref, cap, budget_s, repeats):
@@ -52,16 +68,67 @@ def run_jaxvisco(scene, name, scheme, hs, T, ref, cap, budget_s, repeats):
         sol, first, wall, times = timed(go, repeats=repeats, budget_s=budget_s / 4)
         ok = sol.status == "done"
         ex, eH, e = _errors(sol.x[-1], sol.energy[-1], ref) if ok else (math.nan,) * 3
+        eD = _error_D(sol.dissipated[-1], ref) if ok else math.nan
         row = dict(method=name, family="jaxvisco", h=h, steps=n, status=sol.status, error_x=ex, error_H=eH, error=e,
-                   wall_s=wall, times_s=times, compile_s=first - wall,
+                   error_D=eD, dissipated=float(sol.dissipated[-1]), wall_s=wall, times_s=times, compile_s=first - wall,
                    newton_per_step=float(np.mean(np.asarray(sol.newton_iterations))),
                    krylov_per_step=float(np.mean(np.asarray(sol.krylov_iterations))))
-        print(f"  {name:9s} h={h:<8g} err={e:.3e} (x {ex:.2e}, H {eH:.2e}) wall={wall:.3f}s "
+        print(f"  {name:9s} h={h:<8g} err={e:.3e} (x {ex:.2e}, H {eH:.2e}, D {eD if eD is not None else math.nan:.2e}) "
+              f"wall={wall:.3f}s "
               f"first={first:.1f}s {sol.status}", flush=True)
         rows.append(row)
         if wall > budget_s:
             print(f"  {name}: {wall:.1f}s > budget {budget_s}s, smaller steps skipped", flush=True)
             break
+    return rows
+
+
+def run_adaptive(scene, name, scheme, tols, T, ref, cap, budget_s, repeats):
+    """eG(k) with error-controlled steps (`PIDController(rtol=tol, atol=tol)`, first step
+    tried: a hundredth of the run), loosest tolerance first. A new tolerance does not
+    compile again (the tolerances are array leaves): the compile time is that of the
+    first one. Tighter tolerances are skipped once a run after the loosest one takes
+    longer than the budget."""
+    rows, over = [], False
+    method = name + ADAPTIVE
+    for i, tol in enumerate(tols):
+        if over:
+            rows.append(dict(method=method, family="jaxvisco adaptive", scheme=name, rtol=tol, atol=tol,
+                             status="skipped (budget)", error=math.nan, error_x=math.nan, error_H=math.nan,
+                             error_D=math.nan, wall_s=math.nan))
+            continue
+        ctrl = jv.PIDController(rtol=tol, atol=tol)
+
+        def go():
+            return jv.simulate(scene, scheme, T, None, stepsize_controller=ctrl, save_every=cap, max_steps=cap,
+                               throw=False)
+
+        sol, first, wall, times = timed(go, repeats=repeats, budget_s=budget_s / 4)
+        ok = sol.status == "done"
+        ex, eH, e = _errors(sol.x[-1], sol.energy[-1], ref) if ok else (math.nan,) * 3
+        eD = _error_D(sol.dissipated[-1], ref) if ok else math.nan
+        hs = np.asarray(sol.step_h)
+        row = dict(method=method, family="jaxvisco adaptive", scheme=name, rtol=tol, atol=tol,
+                   steps=int(sol.n_steps), rejections=int(np.sum(np.asarray(sol.rejections))), status=sol.status,
+                   error_x=ex, error_H=eH, error=e, error_D=eD, dissipated=float(sol.dissipated[-1]),
+                   wall_s=wall, times_s=times, first_call_s=first,
+                   newton_iterations=int(np.sum(np.asarray(sol.newton_iterations))),
+                   chord_iterations=int(np.sum(np.asarray(sol.chord_iterations))),
+                   krylov_iterations=int(np.sum(np.asarray(sol.krylov_iterations))),
+                   h_min=float(hs.min()) if hs.size else None, h_median=float(np.median(hs)) if hs.size else None,
+                   h_max=float(hs.max()) if hs.size else None, max_steps=cap)
+        if i == 0:
+            row["compile_s"] = first - wall  # the program serves every tolerance
+        print(f"  {method:15s} tol={tol:<8g} err={e:.3e} (x {ex:.2e}, H {eH:.2e}, "
+              f"D {eD if eD is not None else math.nan:.2e}) wall={wall:.3f}s first={first:.1f}s "
+              f"steps={row['steps']} rej={row['rejections']} newton={row['newton_iterations']} "
+              f"chord={row['chord_iterations']} {sol.status}", flush=True)
+        rows.append(row)
+        # Not after the loosest tolerance: its long steps can cost more Newton iterations
+        # than the tighter runs (eG(2) at 1e-2 on r3: 296 s, 39 rejections, against 10-20 s).
+        if wall > budget_s and i > 0:
+            print(f"  {method}: {wall:.1f}s > budget {budget_s}s, tighter tolerances skipped", flush=True)
+            over = True
     return rows
 
 
@@ -77,7 +144,7 @@ def run_scipy(ode, method, tols, T, ref, budget_s, repeats):
         ex, eH, e = _errors(ode.unpack(y).x, ode.energy(y), ref) if ok else (math.nan,) * 3
         rows.append(dict(method=f"scipy {method}", family="peer", rtol=tol, atol=tol, steps=int(r.t.size - 1),
                          nfev=int(r.nfev), njev=int(r.njev), nlu=int(r.nlu), status="done" if ok else r.message,
-                         error_x=ex, error_H=eH, error=e, wall_s=wall, times_s=times))
+                         error_x=ex, error_H=eH, error=e, error_D=None, wall_s=wall, times_s=times))
         print(f"  scipy {method:5s} tol={tol:<8g} err={e:.3e} wall={wall:.3f}s steps={r.t.size - 1} "
               f"nfev={r.nfev} nlu={r.nlu}", flush=True)
         if wall > budget_s:
@@ -117,7 +184,8 @@ def run_diffrax(ode, name, tols, T, ref, budget_s, repeats, worker_timeout_s, re
                 rows.append(dict(method=f"diffrax {name}", family="peer", rtol=tol, atol=tol,
                                  status=(f"not finished: worker stopped at the {worker_timeout_s:.0f} s limit"
                                          if timed_out else "skipped (budget)"),
-                                 error=math.nan, error_x=math.nan, error_H=math.nan, wall_s=math.nan, probe=probe))
+                                 error=math.nan, error_x=math.nan, error_H=math.nan, error_D=None, wall_s=math.nan,
+                                 probe=probe))
                 if timed_out:
                     print(f"  diffrax {name} tol={tol:g}: stopped at the {worker_timeout_s:.0f} s limit", flush=True)
                     timed_out = False  # the tighter ones were never started
@@ -162,7 +230,7 @@ def diffrax_worker(name, refinement, T, tols, budget_s, repeats, ref_path, max_s
         ex, eH, e = _errors(ode.unpack(y).x, ode.energy(y), ref) if ok else (math.nan,) * 3
         row = dict(method=f"diffrax {name}", family="peer", rtol=tol, atol=tol, steps=int(steps),
                    rejected=int(rejected), status="done" if ok else "failed", error_x=ex, error_H=eH, error=e,
-                   wall_s=wall, times_s=times, compile_s=compile_s,
+                   error_D=None, wall_s=wall, times_s=times, compile_s=compile_s,
                    jacobian="explicit" if name == "Tsit5" else "dense (forward AD), lineax LU")
         print(f"  diffrax {name} tol={tol:<8g} err={e:.3e} wall={wall:.3f}s steps={int(steps)}", flush=True)
         print("ROW " + json.dumps(row), flush=True)
@@ -177,7 +245,7 @@ def interpolate_at(rows, target=TARGET):
     first pair whose errors bracket the target. (Ordering by the measured wall time instead
     let a slower run at a looser tolerance bracket the target: scipy Radau on r2, where tol
     1e-3 took longer than tol 1e-4.)"""
-    ok = [r for r in rows if np.isfinite(r.get("error", np.nan)) and r["error"] > 0]
+    ok = [r for r in rows if r.get("error") is not None and np.isfinite(r["error"]) and r["error"] > 0]
     pts = [(r["wall_s"], r["error"]) for r in sorted(ok, key=lambda r: -r.get("h", r.get("rtol", 0.0)))]
     for (w0, e0), (w1, e1) in zip(pts, pts[1:]):
         if (e0 - target) * (e1 - target) <= 0 and e0 != e1:
@@ -193,6 +261,53 @@ def compare(runs):
     speedup = {m: (w / jv_best[best] if (w is not None and best) else None)
                for m, w in at.items() if m.startswith(("scipy", "diffrax"))}
     return at, best, speedup
+
+
+def _reach_note(rows, target):
+    """Why a curve has no wall time at `target`."""
+    ok = [r["error"] for r in rows if r.get("error") is not None and np.isfinite(r["error"]) and r["error"] > 0]
+    if not ok:
+        return "no run finished: " + "; ".join(dict.fromkeys(str(r.get("status")) for r in rows))
+    return f"its errors ({min(ok):.2g} to {max(ok):.2g}) do not bracket {target:g}"
+
+
+def adaptive_summary(runs, targets=TARGETS):
+    """At each target error: the wall time of the best adaptive eG (least interpolated wall
+    time among eG(k) adaptive) and every other curve's wall time over it (> 1: the adaptive
+    eG is faster): each peer, the best constant-step eG, and the best constant-step
+    jaxvisco scheme of any family."""
+    methods = list(dict.fromkeys(r["method"] for r in runs))
+    rows_of = {m: [r for r in runs if r["method"] == m] for m in methods}
+    out = {}
+    for target in targets:
+        at = {m: interpolate_at(rows_of[m], target) for m in methods}
+        adaptive = {m: w for m, w in at.items() if m.endswith(ADAPTIVE) and w is not None}
+        fixed_eg = {m: w for m, w in at.items() if m.startswith("eG") and not m.endswith(ADAPTIVE) and w is not None}
+        fixed_any = {m: w for m, w in at.items() if not m.startswith(PEERS) and not m.endswith(ADAPTIVE)
+                     and w is not None}
+        best = min(adaptive, key=adaptive.get) if adaptive else None
+        wb = adaptive.get(best)
+        best_eg = min(fixed_eg, key=fixed_eg.get) if fixed_eg else None
+        best_any = min(fixed_any, key=fixed_any.get) if fixed_any else None
+        others = {m: at[m] for m in methods if m.startswith(PEERS)}
+        others["best fixed-step eG"] = fixed_eg.get(best_eg)
+        others["best fixed-step jaxvisco"] = fixed_any.get(best_any)
+        ratio = {m: (w / wb if (w is not None and wb) else None) for m, w in others.items()}
+        notes = {m: _reach_note(rows_of[m], target) for m in methods if at[m] is None}
+        out[f"{target:g}"] = dict(best_adaptive_eG=best, wall_s=wb, best_fixed_eG=best_eg, best_fixed_jaxvisco=best_any,
+                                  ratio_to_best_adaptive=ratio, wall_at_error_s=at, no_value=notes)
+    return out
+
+
+def print_adaptive_summary(key, summ):
+    print(f"{key}: wall time at error e of the best adaptive eG, and each curve's wall time over it", flush=True)
+    for t, d in summ.items():
+        head = (f"  e={t}: best adaptive {d['best_adaptive_eG']} {d['wall_s']:.3g}s" if d["wall_s"] else
+                f"  e={t}: no adaptive eG curve reaches it")
+        which = {"best fixed-step eG": d["best_fixed_eG"], "best fixed-step jaxvisco": d["best_fixed_jaxvisco"]}
+        parts = [(f"{m}" + (f" ({which[m]})" if which.get(m) else "") + (f" {r:.2f}x" if r is not None else " n/a"))
+                 for m, r in d["ratio_to_best_adaptive"].items()]
+        print(head + "; " + ", ".join(parts), flush=True)
 
 
 def merge(names, out):
@@ -221,9 +336,29 @@ def merge(names, out):
             data["scenes"][key].setdefault("other_references", []).append(sc["reference"])
     for key, sc in data["scenes"].items():
         sc["wall_at_target_s"], sc["best_jaxvisco"], sc["speedup_at_target"] = compare(sc["runs"])
+        sc["adaptive_summary"] = adaptive_summary(sc["runs"])
         print(f"{key}: best jaxvisco {sc['best_jaxvisco']}, speedups {sc['speedup_at_target']}", flush=True)
+        print_adaptive_summary(key, sc["adaptive_summary"])
+    data["adaptive_summary"] = {k: sc["adaptive_summary"] for k, sc in data["scenes"].items()}
     write_json(f"{out}.json", data)
     plot(data, RESULTS / f"{out}.png")
+
+
+def _style(m):
+    """Line style of a method: constant-step jaxvisco solid, adaptive eG dashed (same colour
+    as the constant-step eG(k)), peers dotted."""
+    base = m[:-len(ADAPTIVE)] if m.endswith(ADAPTIVE) else m
+    color = {"cG(1)": "#f4a582", "cG(2)": "#92c5de", "cG(3)": "#a6dba0", "eG(1)": "#d6604d", "eG(2)": "#2166ac",
+             "eG(3)": "#1b7837", "Newmark": "#bf812d", "Midpoint": "#80cdc1", "scipy Radau": "black",
+             "scipy BDF": "gray", "diffrax Kvaerno5": "#762a83", "diffrax Kvaerno3": "#c2a5cf",
+             "diffrax Tsit5": "#e7298a"}.get(base)
+    if m.endswith(ADAPTIVE):
+        return dict(ls="--", marker="^", lw=2.0, ms=5, color=color)
+    if m.startswith(PEERS):
+        return dict(ls=":", marker="s", lw=1.4, ms=4, color=color)
+    if m.startswith("eG"):
+        return dict(ls="-", marker="o", lw=1.3, ms=4, color=color)
+    return dict(ls="-", marker="o", lw=0.8, ms=2.5, color=color, alpha=0.6)
 
 
 def plot(data, path):
@@ -233,26 +368,35 @@ def plot(data, path):
     import matplotlib.pyplot as plt
 
     scenes = list(data["scenes"])
-    fig, axes = plt.subplots(1, len(scenes), figsize=(7 * len(scenes), 5.5), squeeze=False)
-    for ax, key in zip(axes[0], scenes):
+    fig, axes = plt.subplots(2, len(scenes), figsize=(7.5 * len(scenes), 11), squeeze=False)
+    for col, key in enumerate(scenes):
         runs = data["scenes"][key]["runs"]
-        for m in dict.fromkeys(r["method"] for r in runs):
-            # in order of the setting (step or tolerance), not of the noisy wall time
-            rs = sorted((r for r in runs if r["method"] == m and np.isfinite(r["error"])),
-                        key=lambda r: -r.get("h", r.get("rtol", 0.0)))
-            if not rs:
-                continue
-            w, e = [r["wall_s"] for r in rs], [r["error"] for r in rs]
-            peer = m.startswith(("scipy", "diffrax"))
-            ax.loglog(w, e, "s--" if peer else "o-", label=m, lw=1.2, ms=4)
-        ax.axhline(TARGET, color="gray", lw=0.6, ls=":")
-        d = data["scenes"][key]
-        ax.set_title(f"{key} ({d['dofs']} unknowns in y), t in [0, {data['settings']['t_end']:g}]")
-        ax.set_xlabel("wall time after compilation [s]")
-        ax.set_ylabel("error (max of rel. positions, rel. H at T)")
-        ax.grid(True, which="both", lw=0.3)
-        ax.legend(fontsize=7, ncol=2)
-    fig.suptitle("Work-precision, lumped mass, 2-core CPU, one benchmark at a time", fontsize=9)
+        for row, (ekey, ylabel) in enumerate((("error", "error (max of rel. positions, rel. H at T)"),
+                                              ("error_D", "rel. error of the dissipated energy D(T)"))):
+            ax = axes[row][col]
+            for m in dict.fromkeys(r["method"] for r in runs):
+                # in order of the setting (step or tolerance), not of the noisy wall time
+                rs = sorted((r for r in runs if r["method"] == m and r.get(ekey) is not None
+                             and np.isfinite(r[ekey]) and r[ekey] > 0),
+                            key=lambda r: -r.get("h", r.get("rtol", 0.0)))
+                if not rs:
+                    continue
+                ax.loglog([r["wall_s"] for r in rs], [r[ekey] for r in rs], label=m, **_style(m))
+            if row == 0:
+                for t in TARGETS:
+                    ax.axhline(t, color="gray", lw=0.6, ls=":")
+                lo, hi = ax.get_ylim()
+                ax.set_ylim(lo, min(hi, 1.0))  # errors above 1 (unstable coarse steps) are off the chart
+            d = data["scenes"][key]
+            ax.set_title(f"{key} ({d['dofs']} unknowns in y), t in [0, {data['settings']['t_end']:g}]"
+                         + ("" if row == 0 else ": jaxvisco only (the ODE peers do not integrate D)"), fontsize=9)
+            ax.set_xlabel("wall time after compilation [s]")
+            ax.set_ylabel(ylabel)
+            ax.grid(True, which="both", lw=0.3)
+            ax.legend(fontsize=7, ncol=2)
+    fig.suptitle("Work-precision, lumped mass, 2-core CPU (shared: see the load averages in the JSON)\n"
+                 "solid: constant step; dashed: eG(k), error-controlled steps (rtol = atol); dotted: peers\n"
+                 "gray lines: the errors 1e-3, 1e-4, 1e-6 of the adaptive summary", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     print(f"wrote {path}", flush=True)
@@ -272,9 +416,18 @@ def main(argv=None):
                    help="comma list of results names to merge into --out (runs split over processes; a method "
                         "measured in a later file replaces its rows in earlier ones); no runs")
     p.add_argument("--replot", action="store_true", help="only redraw the PNG from the JSON")
+    p.add_argument("--adaptive-only", action="store_true",
+                   help="only the reference and the adaptive eG curves (no constant steps, no peers); merge the "
+                        "result with a full run by --merge")
+    p.add_argument("--check", choices=("radau", "eG-2h", "none"), default="radau",
+                   help="cross-check of the eG reference: scipy Radau at rtol 1e-12 (default; ~12 min alone at "
+                        "refinement 2), or eG(3) at twice the reference step")
+    p.add_argument("--tols", default=None, help="comma list of rtol = atol for the adaptive eG and the peers "
+                                                "(default 1e-2,...,1e-7)")
+    p.add_argument("--repeats", type=int, default=None, help="timed calls after the first (default 3)")
+    p.add_argument("--diffrax-timeout", type=float, default=None,
+                   help="wall-clock limit of one diffrax solver's subprocess (default 4 x budget)")
     p.add_argument("--diffrax-worker", default=None, help=argparse.SUPPRESS)
-    p.add_argument("--tols", default=None, help=argparse.SUPPRESS)
-    p.add_argument("--repeats", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--ref", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.merge:
@@ -291,27 +444,38 @@ def main(argv=None):
     T = a.t_end if a.t_end is not None else (1.0 if quick else 10.0)
     refinements = [int(r) for r in (a.refinements or ("1" if quick else "1,2")).split(",")]
     budget = a.budget if a.budget is not None else (8.0 if quick else 90.0)
-    repeats = 2 if quick else 3
-    worker_timeout = 70.0 if quick else 4 * budget  # wall-clock limit of one diffrax solver's subprocess
+    repeats = a.repeats if a.repeats is not None else (2 if quick else 3)
+    # wall-clock limit of one diffrax solver's subprocess
+    worker_timeout = a.diffrax_timeout if a.diffrax_timeout is not None else (70.0 if quick else 4 * budget)
     schemes = all_schemes()
-    order2 = [0.1, 0.05, 0.025, 0.0125, 0.00625]
-    order4 = [0.2, 0.1, 0.05, 0.025, 0.0125]
-    order6 = [0.4, 0.2, 0.1, 0.05, 0.025]
+    # Steps from coarse (errors near 1e-3, the loosest target of the adaptive summary) to fine.
+    order2 = [0.4, 0.2, 0.1, 0.05, 0.025, 0.0125, 0.00625]
+    order4 = [0.5, 0.2, 0.1, 0.05, 0.025, 0.0125]
+    order6 = [1.0, 0.4, 0.2, 0.1, 0.05, 0.025]
     hs = {"cG(1)": order2, "eG(1)": order2, "Newmark": order2, "Midpoint": order2,
           "cG(2)": order4, "eG(2)": order4, "cG(3)": order6, "eG(3)": order6}
-    tols = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
+    tols = [1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7]
+    adaptive = {k: schemes[k] for k in ("eG(1)", "eG(2)", "eG(3)")}
+    adaptive_cap = 16384  # accepted steps at most (eG(1) at rtol 1e-7 takes ~7000 on r1)
     peers = ["scipy Radau", "scipy BDF", "diffrax Kvaerno5", "diffrax Kvaerno3", "diffrax Tsit5"]
     ref_scheme, ref_h, ref_tol = "eG(3)", 0.005, 1e-12
     if quick:
         schemes = {k: schemes[k] for k in ("eG(1)", "eG(2)")}
-        hs = {"eG(1)": [0.05, 0.025], "eG(2)": [0.1, 0.05, 0.025]}
-        tols = [1e-4, 1e-6, 1e-8]
+        hs = {"eG(1)": [0.1, 0.05, 0.025], "eG(2)": [0.2, 0.1, 0.05, 0.025]}
+        tols = [1e-3, 1e-5, 1e-7]
+        adaptive = {k: adaptive[k] for k in ("eG(1)", "eG(2)")}
+        adaptive_cap = 4096
         peers = ["scipy Radau", "scipy BDF", "diffrax Kvaerno5", "diffrax Tsit5"]
         ref_scheme, ref_h, ref_tol = "eG(2)", 0.0025, 1e-9
+    if a.tols:
+        tols = [float(t) for t in a.tols.split(",")]
     if a.methods:
         keep = set(a.methods.split(","))
         schemes = {k: v for k, v in schemes.items() if k in keep}
+        adaptive = {k: v for k, v in adaptive.items() if k + ADAPTIVE in keep}
         peers = [m for m in peers if m in keep]
+    if a.adaptive_only:
+        schemes, peers = {}, []
 
     data = dict(machine=machine(), settings=dict(
         quick=quick, t_end=T, mass="lumped (HRZ) for every method, jaxvisco included",
@@ -321,7 +485,15 @@ def main(argv=None):
               "finder (VeryChord, dense Jacobian by jacfwd, LU): diffrax/lineax have no sparse Jacobian path "
               "(a lineax GMRES root-finder solver failed to trace with diffrax 0.7.2 / lineax 0.1.1); diffrax "
               "runs in a subprocess stopped at a wall-clock limit; diffrax Tsit5 (explicit) added for reference",
-        repeats=repeats, budget_s=budget, target_error=TARGET), scenes={})
+        repeats=repeats, budget_s=budget, target_error=TARGET, tols=tols,
+        adaptive=("eG(k) with stepsize_controller=PIDController(rtol=tol, atol=tol) (defaults otherwise: integral "
+                  "controller, safety 0.9, factors in [0.2, 10], keep_band 1.2), first step tried T/100, "
+                  f"max_steps={adaptive_cap}, frames only at 0 and T; the error estimate controls the interior "
+                  "error of each step's time polynomial (order k+1), so errors at T lie well below rtol"),
+        error_D=("|D(T) - D_ref(T)| / D_ref(T), D the cumulative dissipated energy of the scheme "
+                 "(Solution.dissipated[-1]); null for the ODE peers, which do not integrate D (for the exact "
+                 "solution D(T) = H(0) - H(T) here, no external work)"),
+        adaptive_summary_targets=list(TARGETS), check=a.check, adaptive_only=a.adaptive_only), scenes={})
     for r in refinements:
         key = f"2D L-shape r{r}"
         scene = lshape(2, r, mass="lumped")
@@ -338,28 +510,46 @@ def main(argv=None):
             sol = jv.simulate(scene, all_schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref,
                               max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
             ref_wall = time.perf_counter() - t0
-            ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]))
-            print(f"  reference {ref_scheme} h={ref_h}: H(T)={ref['H']:.12g}, {ref_wall:.1f}s", flush=True)
+            ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]), D=float(sol.dissipated[-1]))
+            print(f"  reference {ref_scheme} h={ref_h}: H(T)={ref['H']:.12g}, D(T)={ref['D']:.12g}, "
+                  f"{ref_wall:.1f}s", flush=True)
         jax.block_until_ready(ode.rhs(0.0, ode.y0))
         ode.jac(0.0, ode.y0)
-        t0 = time.perf_counter()
-        rr = solve_ivp(ode.fun, (0.0, T), ode.y0, method="Radau", jac=ode.jac, rtol=ref_tol, atol=ref_tol)
-        radau_wall = time.perf_counter() - t0
-        yr = rr.y[:, -1]
-        if ref is None:
-            ref_scheme, ref_h = "scipy Radau", None
-            ref = dict(x=np.asarray(ode.unpack(yr).x), H=float(ode.energy(yr)))
-        check = dict(radau_rtol=ref_tol, radau_success=bool(rr.success), radau_steps=int(rr.t.size - 1),
-                     radau_wall_s=radau_wall, diff_x=rel(ode.unpack(yr).x, ref["x"]),
-                     diff_H=abs(float(ode.energy(yr)) - ref["H"]) / abs(ref["H"]))
-        print(f"  Radau rtol={ref_tol}: diff x {check['diff_x']:.2e}, H {check['diff_H']:.2e}, "
-              f"{rr.t.size - 1} steps, {radau_wall:.1f}s", flush=True)
+        if a.check == "radau" or ref is None:
+            t0 = time.perf_counter()
+            rr = solve_ivp(ode.fun, (0.0, T), ode.y0, method="Radau", jac=ode.jac, rtol=ref_tol, atol=ref_tol)
+            radau_wall = time.perf_counter() - t0
+            yr = rr.y[:, -1]
+            if ref is None:
+                ref_scheme, ref_h = "scipy Radau", None
+                ref = dict(x=np.asarray(ode.unpack(yr).x), H=float(ode.energy(yr)), D=None)
+            check = dict(check="scipy Radau", radau_rtol=ref_tol, radau_success=bool(rr.success),
+                         radau_steps=int(rr.t.size - 1), radau_wall_s=radau_wall,
+                         diff_x=rel(ode.unpack(yr).x, ref["x"]),
+                         diff_H=abs(float(ode.energy(yr)) - ref["H"]) / abs(ref["H"]), diff_D=None)
+            print(f"  Radau rtol={ref_tol}: diff x {check['diff_x']:.2e}, H {check['diff_H']:.2e}, "
+                  f"{rr.t.size - 1} steps, {radau_wall:.1f}s", flush=True)
+        elif a.check == "eG-2h":
+            t0 = time.perf_counter()
+            s2 = jv.simulate(scene, all_schemes()[ref_scheme], t_end=T, dt=2 * ref_h, save_every=cap_ref,
+                             max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
+            w2 = time.perf_counter() - t0
+            check = dict(check=f"{ref_scheme} at h = {2 * ref_h:g} (the difference bounds the error of that run; "
+                               "the reference's own is ~2^-(2k) of it)", radau_rtol=None, check_wall_s=w2,
+                         diff_x=rel(s2.x[-1], ref["x"]), diff_H=abs(float(s2.energy[-1]) - ref["H"]) / abs(ref["H"]),
+                         diff_D=_error_D(s2.dissipated[-1], ref))
+            print(f"  check {ref_scheme} h={2 * ref_h:g}: diff x {check['diff_x']:.2e}, H {check['diff_H']:.2e}, "
+                  f"D {check['diff_D']:.2e}, {w2:.1f}s", flush=True)
+        else:
+            check = dict(check="none", radau_rtol=None, diff_x=None, diff_H=None, diff_D=None)
         runs = []
         for name, scheme in schemes.items():
             cap = max(int(round(T / h)) for h in hs[name])
             if name == ref_scheme:
                 cap = max(cap, cap_ref)  # one compile serves the reference and these runs
             runs += run_jaxvisco(scene, name, scheme, hs[name], T, ref, cap, budget, repeats)
+        for name, scheme in adaptive.items():
+            runs += run_adaptive(scene, name, scheme, tols, T, ref, adaptive_cap, budget, repeats)
         for m in peers:
             lib, method = m.split()
             if lib == "scipy":
@@ -367,13 +557,17 @@ def main(argv=None):
             else:
                 runs += run_diffrax(ode, method, tols, T, ref, budget, repeats, worker_timeout, r)
         at, best, speedup = compare(runs)
+        summ = adaptive_summary(runs)
         data["scenes"][key] = dict(
             refinement=r, dofs=ode.n, n_x=ode.n_x, n_gamma=ode.n_g,
-            reference=dict(scheme=ref_scheme, h=ref_h, newton_rtol=1e-12, H=ref["H"], wall_s=ref_wall, **check),
-            runs=runs, wall_at_target_s=at, best_jaxvisco=best, speedup_at_target=speedup)
+            reference=dict(scheme=ref_scheme, h=ref_h, newton_rtol=1e-12, H=ref["H"], D=ref.get("D"), wall_s=ref_wall,
+                           **check),
+            runs=runs, wall_at_target_s=at, best_jaxvisco=best, speedup_at_target=speedup, adaptive_summary=summ)
+        data["adaptive_summary"] = {k: sc["adaptive_summary"] for k, sc in data["scenes"].items()}
         print(f"  wall at {TARGET:g}: " + ", ".join(f"{m} {w:.3g}s" if w else f"{m} n/a" for m, w in at.items()),
               flush=True)
         print(f"  best jaxvisco: {best}; speedups: {speedup}", flush=True)
+        print_adaptive_summary(key, summ)
         write_json(f"{a.out}.json", data)
     plot(data, RESULTS / f"{a.out}.png")
 
