@@ -170,6 +170,9 @@ def _adaptive(scene, integrator, ctrl, t_end, dt, t0, save_every, solver, save_g
         raise ValueError(f"max_steps must be >= 1, got {max_steps!r}.")
     if saveat is not None:
         saveat.check(t0, t_end)
+    if saveat is not None and differentiable:
+        raise ValueError("saveat=SaveAt(ts=...) is not available with differentiable=True; the differentiable "
+                         "run saves at its steps (save_every).")
     if differentiable:
         # Step sizes are constants of the derivative (as in diffrax): find the accepted
         # steps without derivatives, then differentiate the run along them.
@@ -181,9 +184,6 @@ def _adaptive(scene, integrator, ctrl, t_end, dt, t0, save_every, solver, save_g
             raise ValueError("differentiable=True with a stepsize_controller needs the accepted steps as numbers: "
                              "call it outside jax.jit/jax.vmap (jax.grad and jax.jvp are fine), or run the adaptive "
                              "run first and differentiate simulate(..., dt=StepTo(...)) along its steps.")
-        if saveat is not None:
-            raise ValueError("saveat=SaveAt(ts=...) is not available with differentiable=True; the differentiable "
-                             "run saves at its steps (save_every).")
         if probe.status != "done":
             return probe
         ts = np.concatenate([[t0], np.asarray(probe.step_t)])

@@ -192,6 +192,8 @@ def test_bad_input(lshape):
         jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5]))
     with pytest.raises(ValueError, match=r"ts must lie within \[t0, t_end\]"):
         jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5, 2.0]), stepsize_controller=ctrl)
+    with pytest.raises(ValueError, match="not available with differentiable=True"):
+        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5]), stepsize_controller=ctrl, differentiable=True)
     with pytest.raises(ValueError, match="must not decrease"):
         jv.SaveAt([0.5, 0.2])
     with pytest.raises(TypeError, match="stepsize_controller must be a PIDController"):
