@@ -4,6 +4,8 @@ along the accepted steps, the command line, and bad input.
 
 Compilation dominates: every run is the paper's coarse L-shape over a short time."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -222,7 +224,9 @@ def test_command_line_rtol_and_resume(tmp_path, lshape):
 
 
 def test_scene_file_tolerances(tmp_path):
-    text = open(jv.__file__.replace("__init__.py", "../examples/scenes/paper.toml")).read()
+    # relative to this file: CI installs the package, so jaxvisco/../examples is not the checkout
+    scenes = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir, "examples", "scenes")
+    text = open(os.path.join(scenes, "paper.toml")).read()
     text = text.replace("schedule = [[20.0, 0.1], [24.0, 1.0]]   # h = 0.1 up to t = 20, then h = 1",
                         "t_end = 2.0\nrtol = 1e-4\ndt = 0.05")
     (tmp_path / "p.toml").write_text(text)
