@@ -422,6 +422,9 @@ def main(argv=None):
     p.add_argument("--check", choices=("radau", "eG-2h", "none"), default="radau",
                    help="cross-check of the eG reference: scipy Radau at rtol 1e-12 (default; ~12 min alone at "
                         "refinement 2), or eG(3) at twice the reference step")
+    p.add_argument("--reuse-reference", default=None, metavar="NAME",
+                   help="take each scene's reference (and its check) from results/NAME.json (same t_end) instead of "
+                        "computing it: for runs split over processes")
     p.add_argument("--tols", default=None, help="comma list of rtol = atol for the adaptive eG and the peers "
                                                 "(default 1e-2,...,1e-7)")
     p.add_argument("--repeats", type=int, default=None, help="timed calls after the first (default 3)")
@@ -505,7 +508,17 @@ def main(argv=None):
             cap_ref = max(cap_ref, max(int(round(T / h)) for h in hs[ref_scheme]))
         ref = None
         ref_wall = None
-        if a.reference == "eG":
+        reused = None
+        if a.reuse_reference:
+            src = json.loads((RESULTS / f"{a.reuse_reference}.json").read_text())
+            if src["settings"]["t_end"] != T or "x_T" not in src["scenes"].get(key, {}).get("reference", {}):
+                raise SystemExit(f"--reuse-reference {a.reuse_reference}: no reference of {key} at t_end = {T:g} "
+                                 "with its positions (x_T) there")
+            reused = dict(src["scenes"][key]["reference"])
+            ref_scheme, ref_h = reused["scheme"], reused["h"]
+            ref = dict(x=np.asarray(reused["x_T"]), H=reused["H"], D=reused.get("D"))
+            print(f"  reference {ref_scheme} h={ref_h} from {a.reuse_reference}.json: H(T)={ref['H']:.12g}", flush=True)
+        elif a.reference == "eG":
             t0 = time.perf_counter()
             sol = jv.simulate(scene, all_schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref,
                               max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
@@ -515,7 +528,12 @@ def main(argv=None):
                   f"{ref_wall:.1f}s", flush=True)
         jax.block_until_ready(ode.rhs(0.0, ode.y0))
         ode.jac(0.0, ode.y0)
-        if a.check == "radau" or ref is None:
+        if reused is not None:
+            check = {k: v for k, v in reused.items() if k not in ("scheme", "h", "newton_rtol", "H", "D", "wall_s",
+                                                                  "x_T")}
+            check["reused_from"] = f"{a.reuse_reference}.json"
+            ref_wall = reused.get("wall_s")
+        elif a.check == "radau" or ref is None:
             t0 = time.perf_counter()
             rr = solve_ivp(ode.fun, (0.0, T), ode.y0, method="Radau", jac=ode.jac, rtol=ref_tol, atol=ref_tol)
             radau_wall = time.perf_counter() - t0
@@ -543,32 +561,42 @@ def main(argv=None):
         else:
             check = dict(check="none", radau_rtol=None, diff_x=None, diff_H=None, diff_D=None)
         runs = []
+
+        def record(final=False):
+            """Write the scene's runs so far (a run stopped from outside keeps what it measured)."""
+            at, best, speedup = compare(runs)
+            summ = adaptive_summary(runs)
+            data["scenes"][key] = dict(
+                refinement=r, dofs=ode.n, n_x=ode.n_x, n_gamma=ode.n_g,
+                reference=dict(scheme=ref_scheme, h=ref_h, newton_rtol=1e-12, H=ref["H"], D=ref.get("D"),
+                               wall_s=ref_wall, **check, x_T=np.asarray(ref["x"]).tolist()),
+                runs=runs, wall_at_target_s=at, best_jaxvisco=best, speedup_at_target=speedup, adaptive_summary=summ,
+                complete=final)
+            data["adaptive_summary"] = {k: sc["adaptive_summary"] for k, sc in data["scenes"].items()}
+            write_json(f"{a.out}.json", data)
+            return at, best, speedup, summ
+
         for name, scheme in schemes.items():
             cap = max(int(round(T / h)) for h in hs[name])
             if name == ref_scheme:
                 cap = max(cap, cap_ref)  # one compile serves the reference and these runs
             runs += run_jaxvisco(scene, name, scheme, hs[name], T, ref, cap, budget, repeats)
+            record()
         for name, scheme in adaptive.items():
             runs += run_adaptive(scene, name, scheme, tols, T, ref, adaptive_cap, budget, repeats)
+            record()
         for m in peers:
             lib, method = m.split()
             if lib == "scipy":
                 runs += run_scipy(ode, method, tols, T, ref, budget, repeats)
             else:
                 runs += run_diffrax(ode, method, tols, T, ref, budget, repeats, worker_timeout, r)
-        at, best, speedup = compare(runs)
-        summ = adaptive_summary(runs)
-        data["scenes"][key] = dict(
-            refinement=r, dofs=ode.n, n_x=ode.n_x, n_gamma=ode.n_g,
-            reference=dict(scheme=ref_scheme, h=ref_h, newton_rtol=1e-12, H=ref["H"], D=ref.get("D"), wall_s=ref_wall,
-                           **check),
-            runs=runs, wall_at_target_s=at, best_jaxvisco=best, speedup_at_target=speedup, adaptive_summary=summ)
-        data["adaptive_summary"] = {k: sc["adaptive_summary"] for k, sc in data["scenes"].items()}
+            record()
+        at, best, speedup, summ = record(final=True)
         print(f"  wall at {TARGET:g}: " + ", ".join(f"{m} {w:.3g}s" if w else f"{m} n/a" for m, w in at.items()),
               flush=True)
         print(f"  best jaxvisco: {best}; speedups: {speedup}", flush=True)
         print_adaptive_summary(key, summ)
-        write_json(f"{a.out}.json", data)
     plot(data, RESULTS / f"{a.out}.png")
 
 
