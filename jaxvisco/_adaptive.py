@@ -23,7 +23,7 @@ from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent
 
 
-@jit
+@jit(export=True)
 def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save_every, save_gamma, ts_out,
                  eq_tol, v0, use_v0):
     """Integrate from `t0` to `t1` with error-controlled steps; at most `capacity`

@@ -19,6 +19,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import _export
+
 
 def require_x64() -> None:
     """Raise a clear error if JAX is not running in float64."""
@@ -42,10 +44,11 @@ def default_cache_dir():
 
 
 def enable_compilation_cache(path=None):
-    """Keep compiled programs on disk (JAX's persistent compilation cache), so that a new
-    process does not compile the time loop again: the paper's L-shape, eG(1), first
-    `simulate` call 17.1 s cold, 3.2-3.7 s from the cache in later processes (2-core
-    CPU, quiet; what remains is mostly tracing the program).
+    """Keep the time loops on disk, so that a new process neither traces nor compiles
+    them again: JAX's persistent compilation cache holds the compiled programs, and
+    ``jaxvisco-export/`` inside it the traced ones (`jax.export`, see `_export`). The
+    paper's L-shape, eG(1): first `simulate` call FIRSTCOLD s in a fresh process,
+    FIRSTCACHED s in the next ones (2-core CPU, `benchmarks/startup.py`).
 
     `path`: the cache directory (default `default_cache_dir()`, which honours
     ``JAXVISCO_CACHE_DIR``; ``JAXVISCO_CACHE_DIR=off`` turns it off). Call it once,
@@ -96,11 +99,17 @@ def _top_level():
     return bool(trace_state_clean())
 
 
-def jit(fn):
+def jit(fn=None, *, export=False):
     """`equinox.filter_jit(fn)`, compiled with `compiler_options()` when called at top
     level. Called inside a trace (e.g. `jax.grad` or `jax.jit` of a `simulate` call) it is
     a plain nested `filter_jit`: the options belong to the outermost program, which the
-    caller compiles. `.lower(...)` as filter_jit's."""
+    caller compiles. `.lower(...)` as filter_jit's.
+
+    `export=True` (the time loops): at top level, with JAX's persistent cache on
+    (`enable_compilation_cache`), the traced program is kept on disk too and a later
+    process skips tracing it (`_export`); calls the key cannot describe run as usual."""
+    if fn is None:
+        return functools.partial(jit, export=export)
     variants = {}
 
     def get():
@@ -110,8 +119,15 @@ def jit(fn):
             variants[top] = eqx.filter_jit(fn, compiler_options=opts or None)
         return variants[top]
 
+    name = f"{fn.__module__}.{fn.__qualname__}"
+
     @functools.wraps(fn)
     def call(*args, **kwargs):
+        if export and _export.directory() is not None and _top_level():
+            try:
+                return _export.call(fn, name, args, kwargs, compiler_options())
+            except _export.Uncacheable:
+                pass
         return get()(*args, **kwargs)
 
     call.lower = lambda *args, **kwargs: get().lower(*args, **kwargs)

@@ -241,7 +241,7 @@ def _finish(sol, integrator, max_halvings, throw):
     return sol
 
 
-@jit
+@jit(export=True)
 def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0):
     n_frames = 1 + -(-hs.shape[0] // save_every)
     diag0 = scene.diagnostics(state0)

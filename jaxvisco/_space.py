@@ -27,6 +27,9 @@ class StaticArray:
     def __hash__(self):
         return self._hash
 
+    def __reduce__(self):  # by content: Python's hash of bytes differs between processes
+        return (StaticArray, (self.array,))
+
     def __eq__(self, other):
         return (
             isinstance(other, StaticArray)

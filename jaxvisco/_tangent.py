@@ -21,15 +21,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._export import record_pattern
 from ._sparse import HostLU, lu_factor, lu_solve
 from ._step import Unknowns, constraint_scale, force_term, nodal_fields
 from ._tensor import small_inv, sym_to_vec, vec_to_sym
 
 
-@functools.lru_cache(maxsize=32)
 def position_pattern(cells, k, n_nodes, dim, fixed=None):
     """Host factorization object for the (k n d)^2 position block of a mesh (element
     blocks, then one diagonal entry per held component and time node)."""
+    record_pattern("position_pattern", (cells, k, n_nodes, dim, fixed))
+    return _position_pattern(cells, k, n_nodes, dim, fixed)
+
+
+@functools.lru_cache(maxsize=32)
+def _position_pattern(cells, k, n_nodes, dim, fixed):
     c = cells.array
     J = np.arange(k)[:, None, None]
     i = np.arange(dim)[None, None, :]

@@ -1,6 +1,6 @@
 """The host sparse LU behind XLA foreign-function targets (issue 16): the time loop is
-served from JAX's persistent compilation cache in a new process, and the FFI path gives
-the same steps as the `pure_callback` path."""
+served from the exported-program store and JAX's persistent compilation cache in a new
+process, and the FFI path gives the same steps as the `pure_callback` path."""
 
 import json
 import os
@@ -38,10 +38,12 @@ log.setLevel(logging.DEBUG)
 log.addHandler(Keep())
 import jaxvisco as jv
 jv.enable_compilation_cache(sys.argv[1])
+from jaxvisco import _export
 scene = jv.scenes.lshape(dim=2, refinement=1)
 sol = jv.simulate(scene, jv.eG(1), t_end=0.3, dt=0.1)
-run = [m for m in seen if "'jit__run'" in m]
-print("RESULT " + json.dumps(dict(log=run, x=float(abs(sol.x[-1]).sum()), H=float(sol.energy[-1]))))
+run = [m for m in seen if "'jit__run'" in m or "'jit_exported__run'" in m]
+print("RESULT " + json.dumps(dict(log=run, x=float(abs(sol.x[-1]).sum()), H=float(sol.energy[-1]),
+                                  export=_export.stats)))
 """
 
 
@@ -58,15 +60,22 @@ def _run(tmp_path, backend):
 
 
 def test_second_process_served_from_cache(tmp_path):
+    """The first process traces the time loop once (`jax.export`), stores the traced
+    program and its compiled form; the second loads both: it neither traces nor compiles
+    the loop, and computes the same numbers."""
     first = _run(tmp_path, "ffi")
     assert not any("hit" in m for m in first["log"]), first["log"]
-    assert len([f for f in os.listdir(tmp_path / "cache") if f.startswith("jit__run-")]) == 1
+    assert first["export"] == {"exported": 1, "loaded": 0, "uncacheable": 0}, first["export"]
+    assert len([f for f in os.listdir(tmp_path / "cache") if f.startswith("jit_exported__run-")]) == 1
+    assert len(os.listdir(tmp_path / "cache" / "jaxvisco-export")) == 1
     second = _run(tmp_path, "ffi")
-    assert any("Persistent compilation cache hit for 'jit__run'" in m for m in second["log"]), second["log"]
+    assert second["export"] == {"exported": 0, "loaded": 1, "uncacheable": 0}, second["export"]
+    assert any("Persistent compilation cache hit for 'jit_exported__run'" in m for m in second["log"]), second["log"]
     assert second["x"] == first["x"] and second["H"] == first["H"]
-    # the pure_callback path is what JAX refuses to cache
+    # the pure_callback path is what JAX refuses to cache (and jax.export to serialize)
     callback = _run(tmp_path, "callback")
     assert any("'jit__run' because it uses host callbacks" in m for m in callback["log"]), callback["log"]
+    assert callback["export"]["exported"] == 0 and callback["export"]["loaded"] == 0, callback["export"]
     assert callback["x"] == first["x"] and callback["H"] == first["H"]
 
 

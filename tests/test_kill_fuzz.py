@@ -119,6 +119,9 @@ def _fuzz(tmp_path, n_kills, seed):
         after = _n_frames(path) if path.exists() else 0
         worst = _compare(path, ref)[1] if path.exists() else 0.0
         log.append((round(when, 3), resume, before, after, worst))
+        if after == len(ref["t"]):  # killed after its last commit, while exiting: nothing left to resume
+            path.unlink()
+            (tmp_path / "fuzz.xdmf").unlink(missing_ok=True)
     if path.exists():
         killed, _ = _run_killed(_cmd(path.name, True), tmp_path, after_start=600)
     else:
