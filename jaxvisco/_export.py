@@ -140,9 +140,11 @@ def _versions():
 
 def directory():
     """Where exported programs go: ``jaxvisco-export`` in JAX's persistent cache
-    directory, or None while that cache is off."""
+    directory, or None while that cache is off or ``JAXVISCO_EXPORT=off``."""
     base = jax.config.jax_compilation_cache_dir
-    return None if not base else os.path.join(base, "jaxvisco-export")
+    if not base or os.environ.get("JAXVISCO_EXPORT", "").strip().lower() in ("off", "0", "none"):
+        return None
+    return os.path.join(base, "jaxvisco-export")
 
 
 def _key(name, static, skeleton, options):
@@ -258,6 +260,8 @@ def call(fn, name, args, kwargs, options):
 
         run.__name__ = run.__qualname__ = "exported_" + name.rsplit(".", 1)[-1]
         runner = entry["runner"] = jax.jit(run, compiler_options=options or None)
-    out_leaves = runner(*leaves)
+    # Committed (outputs of an earlier run) and uncommitted (new) arrays would compile the
+    # exported program twice (seen: the command line's chunks); commit every input.
+    out_leaves = runner(*jax.device_put(leaves, jax.devices()[0]))
     dyn_out = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(entry["out_skeleton"]), out_leaves)
     return eqx.combine(dyn_out, entry["out_static"])
