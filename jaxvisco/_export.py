@@ -183,7 +183,8 @@ def _load(path):
 
 
 def _export(fn, name, leaves, in_def, static, options):
-    """Trace `fn` once through `jax.export`; returns the entry and the call's output."""
+    """Trace `fn` once through `jax.export`: the entry (serialized program, the host
+    patterns it names, the static part and structure of its output)."""
     global _recorder
 
     out_static = {}
