@@ -26,6 +26,7 @@ no partial entry); an entry that does not load is ignored and written again.
 """
 
 import contextlib
+import functools
 import hashlib
 import importlib.metadata
 import io
@@ -108,27 +109,23 @@ class _Leaf:
     """Placeholder for an array output in a stored output skeleton."""
 
 
-_SOURCE_DIGEST = None
-
-
+@functools.cache
 def _source_digest():
-    global _SOURCE_DIGEST
-    if _SOURCE_DIGEST is None:
-        root = os.path.dirname(os.path.abspath(__file__))
-        h = hashlib.sha256()
-        for dirpath, dirnames, files in os.walk(root):
-            dirnames.sort()
-            for f in sorted(files):
-                if f.endswith((".py", ".cc")):
-                    p = os.path.join(dirpath, f)
-                    h.update(os.path.relpath(p, root).encode())
-                    with open(p, "rb") as fh:
-                        h.update(fh.read())
-        _SOURCE_DIGEST = h.hexdigest()
-    return _SOURCE_DIGEST
+    root = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha256()
+    for dirpath, dirnames, files in os.walk(root):
+        dirnames.sort()
+        for f in sorted(files):
+            if f.endswith((".py", ".cc")):
+                p = os.path.join(dirpath, f)
+                h.update(os.path.relpath(p, root).encode())
+                with open(p, "rb") as fh:
+                    h.update(fh.read())
+    return h.hexdigest()
 
 
-def _versions():
+@functools.cache
+def _versions():  # ~3 ms of package metadata lookups: once per process, not per call
     out = []
     for dist in ("jax", "jaxlib", "equinox"):
         try:
