@@ -1,120 +1,156 @@
-"""The time loop for derivatives: fixed steps, implicit step derivatives, checkpointing.
+"""Derivatives of the time loop: the run's accepted sub-steps, replayed.
 
-`simulate(..., differentiable=True)` runs this loop instead of the adaptive one. JAX
-cannot reverse-differentiate a `while_loop`, and step halving makes the number of
-steps data dependent, so here the steps are the schedule's, exactly, in nested
-`lax.scan`s:
+Every `simulate` run is one `lax.while_loop` (`_simulate`): nominal steps, each halved
+after a failed solve, and an early stop at equilibrium. JAX cannot reverse-differentiate
+a `while_loop` whose trip count depends on the data, so the loop is a `custom_jvp`
+(`_simulate._loop`): evaluated plainly (also under `jax.vmap`) it is just the loop;
+differentiated, its rule
 
-    segments (each under `jax.checkpoint`) → frames (save_every steps each) → steps.
+1. runs the loop, which also writes a `Record`: the start time and size of every
+   accepted sub-step, and the sub-step whose end state each saved frame holds;
+2. replays those sub-steps (`replay`) in nested `lax.scan`s, segments under
+   `jax.checkpoint` -> sub-steps, each step differentiated implicitly
+   (`solve_step_implicit`: one linear solve with the converged tangent; Newton is never
+   differentiated), and returns the replay's tangents at the frames' sub-steps.
 
-Each step is `solve_step_implicit` (its derivative is one linear solve with the
-converged tangent, `_implicit`). In reverse mode only the state at segment boundaries
-is stored during the forward pass; the backward pass re-runs one segment at a time
-(Newton included) and keeps that segment's step residuals. With `checkpoint_every`
-= m frames per segment and n frames in all, the stored states number n/m + m per
-trajectory: O(sqrt n) for the default m = ceil(sqrt n), at the price of running the
-forward pass twice. Forward mode (`jax.jvp`) needs no storage at all.
+Step sizes are constants of the derivative (as in diffrax). The replay's primal equals
+the loop's to the Newton tolerance; it starts every sub-step from a fresh tangent, so
+its result does not depend on the segment length. Reverse mode stores the state at
+segment boundaries (L = ceil(sqrt(K)) sub-steps per segment by default, K the record's
+size: O(sqrt K) states) plus the replay's per-sub-step frame values (K of them), and
+re-runs one segment at a time in the backward pass; forward mode (`jax.jvp`) stores
+nothing but those values. A derivative costs the loop plus the replay twice (forward
+and, in reverse mode, its recomputation) plus one transposed solve per sub-step.
 
-A step that fails (Newton not converged, non-finite values) stops the run: later
-steps are skipped, the last good state is kept, and `status` reports "failed".
+The record holds `record_size(n)` sub-steps for a loop of n nominal slots; a run that
+halves more often than that, or a sub-step that does not converge again when replayed,
+raises an error at run time instead of returning a wrong derivative.
 """
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._config import jit
 from ._implicit import solve_step_implicit
-from ._solution import DONE, FAILED, RUNNING, Solution
 from ._step import make_context, predictor, step_outcome
 from ._tangent import empty_tangent
 
 
-def layout(n_steps, save_every, checkpoint_every=None):
-    """Frames per segment, number of segments, padded frame count."""
-    n_frames = -(-n_steps // save_every)
-    m = math.ceil(math.sqrt(n_frames)) if checkpoint_every is None else int(checkpoint_every)
-    m = max(1, min(m, n_frames))
-    n_seg = -(-n_frames // m)
-    return m, n_seg
+class Record(eqx.Module):
+    """What the loop writes for its derivative: start time `t` and size `h` of each of
+    its `n` accepted sub-steps, and per saved frame the index of the sub-step whose end
+    state it holds (`frame_slot`, -1 for the initial frame and unused frames)."""
+
+    t: jax.Array
+    h: jax.Array
+    n: jax.Array
+    frame_slot: jax.Array
 
 
-@jit
-def run_scan(scene, scheme, solver, state0, t0, hs, te, n_active, save_every, save_gamma, m, n_seg, v0, use_v0, n_keep):
-    """hs, te: (n_seg * m * save_every,) step sizes and end times, padded; steps >= n_active are skipped.
-    n_keep (static): the schedule's step count; the padding is cut from the outputs so a
-    traced Solution has exactly the schedule's frames and steps."""
-    diag0 = scene.diagnostics(state0)
-    hs = hs.reshape(n_seg, m, save_every)
-    te = te.reshape(hs.shape)
-    idx = jnp.arange(hs.size).reshape(hs.shape)
-    fresh_tangent = empty_tangent(scheme, scene)
+def record_size(n_slots):
+    """Sub-steps a loop of `n_slots` nominal step slots records: room for a quarter more
+    (at least 16) sub-steps from halvings."""
+    return n_slots + max(16, n_slots // 4)
 
-    def step(c, inp):
-        h, t_next, i = inp
-        active = (i < n_active) & (c["status"] == RUNNING)
+
+def empty_record(n_slots, n_frames, dtype):
+    size = record_size(n_slots)
+    return Record(t=jnp.zeros(size, dtype), h=jnp.ones(size, dtype), n=jnp.asarray(0),
+                  frame_slot=jnp.full(n_frames, -1))
+
+
+def record_substep(rec, t, h, ok):
+    """`rec` with an accepted (`ok`) sub-step from `t` of size `h` appended."""
+    t_ = rec.t.at[rec.n].set(t, mode="drop")
+    h_ = rec.h.at[rec.n].set(h, mode="drop")
+    return Record(t=jnp.where(ok, t_, rec.t), h=jnp.where(ok, h_, rec.h), n=rec.n + ok.astype(int),
+                  frame_slot=rec.frame_slot)
+
+
+def record_frame(rec, frame, save):
+    """`rec` noting that frame `frame` holds the last accepted sub-step (when `save`)."""
+    slot = rec.frame_slot.at[frame].set(rec.n - 1, mode="drop")
+    return eqx.tree_at(lambda r: r.frame_slot, rec, jnp.where(save, slot, rec.frame_slot))
+
+
+def segment_length(n_slots, save_every=1, checkpoint_every=None):
+    """Sub-steps per checkpointed segment of the replay: ceil(sqrt(n_slots)), or
+    `checkpoint_every` frames' worth of sub-steps."""
+    if checkpoint_every is None:
+        return max(1, math.ceil(math.sqrt(n_slots)))
+    return max(1, min(int(checkpoint_every) * int(save_every), n_slots))
+
+
+def frame_values(scene, state, dissipated, work, save_gamma):
+    """What a saved frame holds besides its time."""
+    out = dict(x=state.x, p=state.p, dissipated=dissipated, external_work=work, **scene.diagnostics(state))
+    if save_gamma and state.gamma is not None:
+        out["gamma"] = state.gamma
+    return out
+
+
+def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
+    """Re-run the recorded sub-steps; differentiable in `scene`, `state0` and `v0`.
+
+    Returns the initial frame's values, every sub-step's frame values (leading axis: the
+    record's slots), the end velocity and whether a replayed sub-step failed."""
+    size = rec.t.shape[0]
+    seg = min(segment, size)
+    n_seg = -(-size // seg)
+    pad = n_seg * seg - size
+    ts = jnp.pad(rec.t, (0, pad)).reshape(n_seg, seg)
+    hs = jnp.pad(rec.h, (0, pad), constant_values=1.0).reshape(n_seg, seg)
+    idx = jnp.arange(n_seg * seg).reshape(n_seg, seg)
+    fresh = empty_tangent(scheme, scene)
+    dtype = state0.p.dtype
+
+    def substep(c, inp):
+        t, h, k = inp
 
         def attempt(c):
-            ctx = make_context(scene, c["state"], c["t"], h)
-            U0 = predictor(scheme, scene, ctx, c["v"])
-            r = solve_step_implicit(solver, scheme, scene, ctx, U0, c["tan"])
+            ctx = make_context(scene, c["state"], t, h)
+            r = solve_step_implicit(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), fresh)
             new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
-            keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(ok, x, y), a, b)  # noqa: E731
-            out = dict(state=keep(new, c["state"]), t=jnp.where(ok, t_next, c["t"]),
-                       v=keep(v_end, c["v"]), tan=r.tangent,
-                       dissipated=c["dissipated"] + jnp.where(ok, D, 0.0),
-                       work=c["work"] + jnp.where(ok, W, 0.0),
-                       status=jnp.where(ok, c["status"], FAILED), n_done=c["n_done"] + ok.astype(int))
-            stats = (r.iterations, r.krylov_iterations, r.chord_iterations, jnp.where(ok, r.residual, jnp.inf))
-            return out, stats
+            return dict(state=new, v=v_end, D=c["D"] + D, W=c["W"] + W, failed=c["failed"] | ~ok)
 
-        def skip(c):
-            return c, (jnp.asarray(0), jnp.asarray(0), jnp.asarray(0), jnp.asarray(0.0))
-
-        c, (its, kits, chord, res) = jax.lax.cond(active, attempt, skip, c)
-        return c, dict(step_t=c["t"], step_h=h, newton_iterations=its, krylov_iterations=kits,
-                       chord_iterations=chord, residual=res,
-                       rejections=jnp.asarray(0))
-
-    def frame(c, inp):
-        # A fresh tangent at every frame start. Newton's preconditioner is otherwise kept
-        # across steps, and the converged steps depend on it within the Newton tolerance
-        # (~1e-10 relative); segments are whole frames, so resetting per frame makes the
-        # trajectory (and its gradient) independent of `checkpoint_every`, and the
-        # recomputation in the backward pass repeats the forward pass exactly and never
-        # needs an old factorization.
-        c = dict(c, tan=fresh_tangent)
-        started = (inp[2][0] < n_active) & (c["status"] == RUNNING)
-        c, steps = jax.lax.scan(step, c, inp)
-        st = c["state"]
-        out = dict(t=c["t"], x=st.x, p=st.p, dissipated=c["dissipated"], external_work=c["work"],
-                   started=started, **scene.diagnostics(st))
-        if save_gamma and st.gamma is not None:
-            out["gamma"] = st.gamma
-        return c, (out, steps)
+        c = jax.lax.cond(k < rec.n, attempt, lambda c: c, c)
+        return c, frame_values(scene, c["state"], c["D"], c["W"], save_gamma)
 
     @jax.checkpoint
-    def segment(c, inp):
-        return jax.lax.scan(frame, c, inp)
+    def run_segment(c, inp):
+        return jax.lax.scan(substep, c, inp)
 
-    init = dict(state=state0, t=t0, v=jnp.where(use_v0, v0, scene.velocity(state0.p)), tan=fresh_tangent,
-                dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0), status=jnp.asarray(RUNNING),
-                n_done=jnp.asarray(0))
-    c, (frames, steps) = jax.lax.scan(segment, init, (hs, te, idx))
-    n_frames = -(-n_keep // save_every)
-    frames = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:n_frames], frames)
-    steps = jax.tree_util.tree_map(lambda a: a.reshape(-1)[:n_keep], steps)
-    first = dict(t=t0, x=state0.x, p=state0.p, dissipated=jnp.asarray(0.0), external_work=jnp.asarray(0.0),
-                 started=jnp.asarray(True), **diag0)
-    if "gamma" in frames:
-        first["gamma"] = state0.gamma
-    frames = {k: jnp.concatenate([jnp.asarray(first[k])[None], v]) for k, v in frames.items()}
-    status = jnp.where(c["status"] == RUNNING, DONE, c["status"])
-    return Solution(
-        t=frames["t"], x=frames["x"], p=frames["p"], gamma=frames.get("gamma"), energy=frames["energy"],
-        kinetic=frames["kinetic"], free_energy=frames["free_energy"], dissipated=frames["dissipated"],
-        dissipation_rate=frames["dissipation_rate"], external_work=frames["external_work"],
-        linear_momentum=frames["linear_momentum"], angular_momentum=frames["angular_momentum"],
-        n_saved=jnp.sum(frames["started"]).astype(int), n_steps=c["n_done"], status_code=status,
-        integrator=scheme.describe(), **steps)
+    v_init = jnp.where(use_v0, v0, scene.velocity(state0.p))
+    init = dict(state=state0, v=v_init, D=jnp.zeros((), dtype), W=jnp.zeros((), dtype), failed=jnp.asarray(False))
+    c, ys = jax.lax.scan(run_segment, init, (ts, hs, idx))
+    ys = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:size], ys)
+    first = frame_values(scene, state0, jnp.zeros((), dtype), jnp.zeros((), dtype), save_gamma)
+    return first, ys, c["v"], c["failed"]
+
+
+def frame_tangents(rec, n_saved, first, ys):
+    """The frames' tangents from the replay's: frame 0 from the initial state, frame j
+    from the sub-step `rec.frame_slot[j]`, zero for unused frames."""
+    n_frames = rec.frame_slot.shape[0]
+    slot = jnp.clip(rec.frame_slot, 0, rec.t.shape[0] - 1)
+    j = jnp.arange(n_frames)
+
+    def pick(f0, y):
+        g = y[slot]
+        mask = (j < n_saved).reshape((-1,) + (1,) * (g.ndim - 1))
+        g = jnp.where(mask, g, 0.0)
+        return g.at[0].set(f0)
+
+    return {k: pick(first[k], ys[k]) for k in ys}
+
+
+def check_replay(rec, failed, value):
+    """`value`, or a run-time error where the derivative would be wrong."""
+    value = eqx.error_if(value, rec.n > rec.t.shape[0],
+                         "jaxvisco: the run halved its steps into more sub-steps than its derivative records; "
+                         "pass a larger max_steps (the record holds max_steps + max(16, max_steps // 4) sub-steps).")
+    return eqx.error_if(value, failed,
+                        "jaxvisco: a sub-step that converged in the run did not converge when it was replayed for "
+                        "the derivative; tighten or loosen NewtonKrylov's tolerances, or use smaller steps.")

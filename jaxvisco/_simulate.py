@@ -4,6 +4,8 @@
 steps (compile time does not depend on their number). Each nominal step is advanced by
 an inner loop that halves the step after a failed Newton solve and grows back after
 successes; a step that cannot be recovered ends the run with the last good state.
+The loop is differentiable (`jax.grad`, `jax.jvp`) through a replay of its accepted
+sub-steps (`_differentiable`).
 """
 
 from typing import Optional
@@ -15,7 +17,8 @@ import numpy as np
 
 from ._adaptive import run_adaptive
 from ._config import _top_level, jit
-from ._differentiable import layout, run_scan
+from ._differentiable import (check_replay, empty_record, frame_tangents, record_frame, record_size, record_substep,
+                              replay, segment_length)
 from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
 from ._newton import NewtonKrylov, solve_step
 from ._scene import Scene, State
@@ -61,15 +64,17 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
       until they are trimmed; called under a JAX transformation, the number of steps).
       Runs with the same capacity share one compilation.
     - `throw`: raise `SolverError` on failure (else return with `status == "failed"`).
-    - `differentiable`: run the loop that JAX can differentiate (`jax.grad`, `jax.jvp`,
-      `jax.vmap`) with respect to anything the scene holds (material parameters,
-      density, initial velocities and positions, loads) and `initial_state`: the
-      schedule's steps exactly (no halving, no early stop; a failed step ends the run
-      with `status == "failed"`), each step differentiated implicitly (one linear solve
-      with the converged tangent; Newton is never differentiated). See `_differentiable`.
-    - `checkpoint_every`: frames per checkpointed segment of the differentiable loop
-      (default ceil(sqrt(frames)): reverse-mode memory grows like the square root of
-      the number of steps).
+    - `differentiable`: kept for compatibility; with constant steps or a schedule every
+      run is differentiable and the flag changes nothing. `jax.grad`, `jax.jvp` and
+      `jax.vmap` of a plain call work, with respect to anything the scene holds (material
+      parameters, density, initial velocities and positions, loads), `initial_state`
+      and `initial_velocity`; step halving and `stop_at_equilibrium` stay on. The
+      derivative follows the run's accepted sub-steps (step sizes are constants of the
+      derivative), each step differentiated implicitly (one linear solve with the
+      converged tangent; Newton is never differentiated). See `_differentiable`.
+    - `checkpoint_every`: frames per checkpointed segment when the run is differentiated
+      in reverse mode (default: ceil(sqrt(sub-steps)) sub-steps; reverse-mode memory
+      grows like the square root of the number of steps).
 
     - `stepsize_controller`: `PIDController(rtol, atol, ...)` for error-controlled steps
       (see `_stepsize`, `_estimate`): `dt` is then the first step tried (a number, or
@@ -126,26 +131,21 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
         if int(max_steps) < n_active:
             raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
         hs, te = _padded(hs, te, int(max_steps))
-    elif not differentiable and _top_level():  # traced callers keep arrays of the run's length
+    elif _top_level():  # traced callers keep arrays of the run's length
         hs, te = _padded(hs, te, capacity(n_active))
-    if differentiable:
-        if stop_at_equilibrium is not None:
-            raise ValueError("stop_at_equilibrium is not available with differentiable=True "
-                             "(the differentiable loop runs the schedule's steps exactly).")
-        m, n_seg = layout(n_active, int(save_every), checkpoint_every)
-        # A backward sweep needs the factorizations of a whole segment at once (one per
-        # step for the derivative, a few more for Newton when the segment is re-run).
+    if checkpoint_every is not None and (isinstance(checkpoint_every, bool) or int(checkpoint_every) < 1):
+        raise ValueError(f"checkpoint_every must be a positive number of frames or None, got {checkpoint_every!r}.")
+    segment = segment_length(record_size(len(hs)), int(save_every), checkpoint_every)
+    if not _top_level():
+        # Under a transformation the run may be differentiated: a backward sweep needs
+        # the factorizations of a whole segment at once (one per sub-step for the
+        # derivative, a few more for Newton when the segment is re-run).
         position_pattern(scene.disc.cells, integrator.k, scene.disc.n_nodes, scene.dim, scene.fixed).reserve(
-            64 + 8 * m * int(save_every))
-        hs_pad, te_pad = _padded(hs[:n_active], te[:n_active], n_seg * m * int(save_every))
-        sol = run_scan(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs_pad),
-                       jnp.asarray(te_pad), jnp.asarray(n_active), int(save_every), bool(save_gamma), m, n_seg, v0, use_v0,
-                       int(n_active))
-        return _finish(sol, integrator, 0, throw)
+            64 + 8 * segment)
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
                jnp.asarray(n_active), int(save_every), bool(save_gamma),
                None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
-               int(max_halvings), v0, use_v0)
+               int(max_halvings), v0, use_v0, segment)
     return _finish(sol, integrator, int(max_halvings), throw)
 
 
@@ -189,7 +189,7 @@ def _adaptive(scene, integrator, ctrl, t_end, dt, t0, save_every, solver, save_g
         ts = np.concatenate([[t0], np.asarray(probe.step_t)])
         return simulate(scene, integrator, None, StepTo(ts), save_every=save_every, solver=solver,
                         save_gamma=save_gamma, initial_state=state0, throw=throw,
-                        initial_velocity=jnp.where(use_v0, v0, scene.velocity(state0.p)), differentiable=True,
+                        initial_velocity=jnp.where(use_v0, v0, scene.velocity(state0.p)),
                         checkpoint_every=checkpoint_every)
     sol, _ = run_adaptive(scene, integrator, solver, ctrl, state0, jnp.asarray(t0), jnp.asarray(t_end),
                           jnp.asarray(h0), cap, int(save_every), bool(save_gamma),
@@ -242,13 +242,57 @@ def _finish(sol, integrator, max_halvings, throw):
 
 
 @jit(export=True)
-def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0):
+def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0,
+         segment=None):
+    """The time loop (`_loop`), compiled. `segment`: sub-steps per checkpointed segment
+    of its derivative (`_differentiable`; None: ceil(sqrt) of the record's size)."""
+    if segment is None:
+        segment = segment_length(record_size(hs.shape[0]))
+    return _loop(scene, state0, v0, scheme=scheme, solver=solver, t0=t0, hs=hs, te=te, n_steps=n_steps,
+                 save_every=save_every, save_gamma=save_gamma, eq_tol=eq_tol, max_halvings=max_halvings,
+                 use_v0=use_v0, segment=segment)
+
+
+@eqx.filter_custom_jvp
+def _loop(scene, state0, v0, **kw):
+    """The loop's `Solution`; differentiable in the scene, the initial state and the
+    predictor's initial velocity through the replay of its sub-steps (`_loop_jvp`)."""
+    kw.pop("segment")
+    return _probe(scene, state0, v0, **kw)[0]
+
+
+@_loop.def_jvp
+def _loop_jvp(primals, tangents, *, segment, **kw):
+    scene, state0, v0 = primals
+    sol, rec = _probe(scene, state0, v0, **kw)
+    rec = check_replay(rec, False, rec)
+
+    def fn(scene, state0, v0):
+        return replay(kw["scheme"], kw["solver"], scene, state0, v0, kw["use_v0"], rec, kw["save_gamma"], segment)
+
+    out, d_out = eqx.filter_jvp(fn, primals, tangents)
+    # Symbolic zeros (an output that does not depend on what is differentiated) -> zeros.
+    first, ys, v_end, failed = out
+    d_first, d_ys, d_v, _ = jax.tree_util.tree_map(lambda t, p: jnp.zeros_like(p) if t is None else t,
+                                                   d_out[:3] + (None,), (first, ys, v_end, failed),
+                                                   is_leaf=lambda t: t is None)
+    frames = check_replay(rec, failed, frame_tangents(rec, sol.n_saved, d_first, d_ys))
+    t_sol = jax.tree_util.tree_map(lambda _: None, sol)
+    names = [k for k in frames if getattr(sol, k) is not None]
+    t_sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names] + [s.end_velocity], t_sol,
+                        [frames[k] for k in names] + [d_v], is_leaf=lambda x: x is None)
+    return sol, t_sol
+
+
+def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings,
+           use_v0):
+    """The loop itself: a `Solution` and the `Record` of its accepted sub-steps."""
     n_frames = 1 + -(-hs.shape[0] // save_every)
     diag0 = scene.diagnostics(state0)
     H0 = diag0["energy"]
     full = 2**max_halvings
 
-    def advance(state, t, h, t_next, v, tan):
+    def advance(state, t, h, t_next, v, tan, rec):
         """One nominal step from t to t_next = t + h, halved on failure (dyadic sub-steps;
         the sub-steps end at t + (pos / full) h, the last at t_next exactly)."""
 
@@ -272,10 +316,10 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
                 its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations, chord=c["chord"] + r.chord_iterations,
                 rej=c["rej"] + jnp.where(ok, 0, 1), D=c["D"] + jnp.where(ok, D, 0.0),
                 W=c["W"] + jnp.where(ok, W, 0.0), res=jnp.maximum(c["res"], jnp.where(ok, r.residual, 0.0)),
-                failed=level > max_halvings,
+                failed=level > max_halvings, rec=record_substep(c["rec"], c["t"], hs_, ok),
             )
 
-        init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0),
+        init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0), rec=rec,
                     its=jnp.asarray(0), kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0), D=jnp.asarray(0.0),
                     W=jnp.asarray(0.0), res=jnp.asarray(0.0), failed=jnp.asarray(False))
         return jax.lax.while_loop(cond, body, init)
@@ -285,7 +329,7 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
 
     def body(c):
         i = c["i"]
-        a = advance(c["state"], c["t"], hs[i], te[i], c["v"], c["tan"])
+        a = advance(c["state"], c["t"], hs[i], te[i], c["v"], c["tan"], c["rec"])
         failed = a["failed"]
         dissipated, work = c["dissipated"] + a["D"], c["work"] + a["W"]
         status = jnp.where(failed, FAILED, RUNNING)
@@ -307,7 +351,8 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
                      chord_iterations=steps["chord_iterations"].at[i].set(a["chord"]),
                      residual=steps["residual"].at[i].set(a["res"]),
                      rejections=steps["rejections"].at[i].set(a["rej"]))
-        return dict(i=i + 1, state=a["state"], t=a["t"], v=a["v"], tan=a["tan"], frames=frames, steps=steps,
+        rec = record_frame(a["rec"], c["n_saved"], save)
+        return dict(i=i + 1, state=a["state"], t=a["t"], v=a["v"], tan=a["tan"], frames=frames, steps=steps, rec=rec,
                     n_saved=c["n_saved"] + save.astype(int), dissipated=dissipated, work=work, status=status,
                     n_done=c["n_done"] + (~failed).astype(int))
 
@@ -318,9 +363,11 @@ def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_ga
                  residual=zeros_f, rejections=zeros_i)
     v_init = jnp.where(use_v0, v0, scene.velocity(state0.p))
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene),
-                frames=frames, steps=steps, n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
+                frames=frames, steps=steps, rec=empty_record(hs.shape[0], n_frames, t0.dtype),
+                n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
                 work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))
     c = jax.lax.while_loop(cond, body, init)
-    return Solution(
+    sol = Solution(
         **frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["n_done"],
         status_code=c["status"], integrator=scheme.describe(), end_velocity=c["v"], **c["steps"])
+    return sol, c["rec"]

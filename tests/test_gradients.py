@@ -30,8 +30,9 @@ def _loss_fn(scheme, checkpoint_every=None):
     scene = _scene()
 
     def loss(theta):
+        # A plain call: every run is differentiable (halving and early stop stay on).
         sol = jv.simulate(_with(scene, theta), scheme, t_end=N_STEPS * H, dt=H, solver=SOLVER,
-                          differentiable=True, checkpoint_every=checkpoint_every)
+                          checkpoint_every=checkpoint_every)
         # Dissipated energy and final free energy (sensitive to both viscosities) and a
         # position functional (sensitive to the initial velocity).
         X = scene.x0
@@ -120,3 +121,33 @@ def test_differentiable_run_equals_adaptive_run():
     np.testing.assert_allclose(b.x, a.x[::2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.energy, a.energy[::2], rtol=1e-11)
     np.testing.assert_allclose(b.dissipated, a.dissipated[::2], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.timeout(900)
+def test_gradient_of_a_run_that_halves_its_steps():
+    """A plain call whose steps are too large for Newton: every nominal step is halved
+    (counts asserted). Its reverse-mode derivative follows the accepted sub-steps and
+    equals fourth-order central differences of the same call, whose points halve
+    identically (so they differentiate the same sub-step sequence)."""
+    scene = _scene()
+
+    def run(theta):
+        return jv.simulate(_with(scene, theta), jv.eG(1), t_end=4.0, dt=2.0, solver=SOLVER)
+
+    def loss(sol):
+        return sol.dissipated[-1] + sol.free_energy[-1] + 1e-3 * jnp.mean((sol.x[-1] - scene.x0) ** 2)
+
+    theta = _theta0()
+    g = np.asarray(jax.grad(lambda th: loss(run(th)))(theta))
+    eps = 1e-2
+    steps = np.array([1.0, -1.0, 2.0, -2.0]) * eps
+    f = np.zeros((3, 4))
+    for i in range(3):
+        for j, s in enumerate(steps):
+            sol = run(theta + s * jnp.eye(3)[i])
+            assert sol.status == "done" and np.asarray(sol.rejections).tolist() == [1, 1], sol.rejections
+            f[i, j] = float(loss(sol))
+    fd = (8 * (f[:, 0] - f[:, 1]) - (f[:, 2] - f[:, 3])) / (12 * eps)
+    rel = np.abs(g - fd) / np.abs(fd)
+    print(f"reverse {g}, FD {fd}, rel. error {rel}")
+    assert np.all(rel <= 1e-6), (g, fd, rel)
