@@ -39,7 +39,7 @@ def main(argv=None):
     T, h = (2.0, 0.2) if args.quick else (4.0, 0.2)
     scene = jv.scenes.lshape(dim=2, refinement=1)
     run = dict(t_end=T, dt=h, solver=jv.NewtonKrylov(rtol=1e-11))
-    truth = jv.simulate(jv.with_parameters(scene, TRUE), jv.eG(1), differentiable=True, **run)
+    truth = jv.simulate(jv.with_parameters(scene, TRUE), jv.eG(1), **run)
     clean = np.asarray(observe(truth))
     rng = np.random.default_rng(0)
     rms = np.sqrt(np.mean(clean**2, axis=1, keepdims=True))

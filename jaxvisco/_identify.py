@@ -3,7 +3,7 @@
 The unknowns are the logarithms of the chosen material parameters (positive by
 construction, and steps in log space are relative changes). The loss is the relative
 least-squares misfit between `observe(solution)` and the data; its gradient comes from
-`simulate(..., differentiable=True)`: forward mode (`jax.jacfwd`, one tangent solve per
+`simulate` (every run is differentiable): forward mode (`jax.jacfwd`, one tangent solve per
 step and parameter, no storage) since there are only a few parameters. Each optimizer
 step (optax L-BFGS with a backtracking line search by default) is one compiled program.
 """
@@ -71,7 +71,7 @@ def identify(scene, integrator, observe: Callable, data, t_end, dt, initial: dic
 
     **Arguments:**
     - `scene`, `integrator`, `t_end`, `dt`, `save_every`, `solver`: the run, as in
-      `simulate` (the differentiable loop is used).
+      `simulate`.
     - `observe`: `Solution -> array`, e.g. `lambda s: jnp.stack([s.free_energy,
       s.dissipated])` or the positions of a few nodes `lambda s: s.x[:, nodes]`.
     - `data`: the observations, shaped like `observe`'s output.
@@ -150,7 +150,7 @@ class _Static(eqx.Module):
 def _loss(st, scene, data, scale, z):
     sc = with_parameters(scene, {n: jnp.exp(z[i]) for i, n in enumerate(st.names)})
     sol = simulate(sc, st.integrator, t_end=st.t_end, dt=st.dt, solver=st.solver, save_every=st.save_every,
-                   differentiable=True, throw=False)
+                   throw=False)
     pred = observe_checked(st.observe, sol, data.shape)
     # A failed run (a step that did not converge) counts as an infinitely bad fit: the
     # line search then backtracks instead of trusting a truncated trajectory.
