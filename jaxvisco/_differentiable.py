@@ -62,17 +62,16 @@ def empty_record(n_slots, n_frames, dtype):
 
 
 def record_substep(rec, t, h, ok):
-    """`rec` with an accepted (`ok`) sub-step from `t` of size `h` appended."""
-    t_ = rec.t.at[rec.n].set(t, mode="drop")
-    h_ = rec.h.at[rec.n].set(h, mode="drop")
-    return Record(t=jnp.where(ok, t_, rec.t), h=jnp.where(ok, h_, rec.h), n=rec.n + ok.astype(int),
-                  frame_slot=rec.frame_slot)
+    """`rec` with the sub-step from `t` of size `h` written at slot `rec.n`, which it
+    takes if it was accepted (`ok`); a rejected attempt is overwritten by the next."""
+    return Record(t=rec.t.at[rec.n].set(t, mode="drop"), h=rec.h.at[rec.n].set(h, mode="drop"),
+                  n=rec.n + ok.astype(int), frame_slot=rec.frame_slot)
 
 
 def record_frame(rec, frame, save):
     """`rec` noting that frame `frame` holds the last accepted sub-step (when `save`)."""
-    slot = rec.frame_slot.at[frame].set(rec.n - 1, mode="drop")
-    return eqx.tree_at(lambda r: r.frame_slot, rec, jnp.where(save, slot, rec.frame_slot))
+    slot = jnp.where(save, rec.n - 1, rec.frame_slot[jnp.minimum(frame, rec.frame_slot.shape[0] - 1)])
+    return eqx.tree_at(lambda r: r.frame_slot, rec, rec.frame_slot.at[frame].set(slot, mode="drop"))
 
 
 def segment_length(n_slots, save_every=1, checkpoint_every=None):
