@@ -6,6 +6,7 @@ jaxvisco computes in float64 and never switches precision behind your back: call
 
 from . import scenes as scenes
 from . import time_functions as time_functions
+from ._config import __version__ as __version__
 from ._config import enable_compilation_cache as enable_compilation_cache
 from ._config import require_x64 as require_x64
 from ._fem._boundary import boundary_facets as boundary_facets
@@ -66,5 +67,3 @@ from ._tools._identify import with_parameters as with_parameters
 from ._tools._ode import SemiDiscrete as SemiDiscrete
 from ._tools._ode import semidiscrete as semidiscrete
 from ._tools._resume import resume as resume
-
-__version__ = "0.1.0"

@@ -87,7 +87,7 @@ class ResultsWriter:
         g.create_dataset("cells", data=np.asarray(mesh.cells)).attrs["cell_type"] = str(mesh.cell_type)
         import jax
 
-        from .. import __version__
+        from .._config import __version__
 
         self.f.attrs["format"] = FORMAT
         self.f.attrs["jaxvisco_version"] = __version__
