@@ -1,5 +1,5 @@
 """Builds jaxvisco's one C++ extension: the XLA foreign-function targets of the host
-sparse LU (jaxvisco/_ffi/hostlu.cc). Everything else is in pyproject.toml.
+sparse LU (jaxvisco/_solver/_ffi/hostlu.cc). Everything else is in pyproject.toml.
 
 The headers come from jaxlib (a build requirement); the extension links against
 nothing but Python. It is optional: where it does not build, jaxvisco falls back to
@@ -23,8 +23,8 @@ def _jaxlib_include():
 setup(
     ext_modules=[
         Extension(
-            "jaxvisco._ffi._hostlu",
-            sources=["jaxvisco/_ffi/hostlu.cc"],
+            "jaxvisco._solver._ffi._hostlu",
+            sources=["jaxvisco/_solver/_ffi/hostlu.cc"],
             include_dirs=_jaxlib_include() + [sysconfig.get_paths()["include"]],
             extra_compile_args=["-std=c++17", "-O2", "-Wno-attributes", "-Wno-return-type"],
             language="c++",

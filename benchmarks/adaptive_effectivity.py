@@ -20,11 +20,11 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxvisco._estimate import defect_matrices, defects, dense_state  # noqa: E402
-from jaxvisco._newton import NewtonKrylov, solve_step  # noqa: E402
-from jaxvisco._step import make_context, predictor, step_outcome  # noqa: E402
-from jaxvisco._tangent import empty_tangent  # noqa: E402
-from jaxvisco._tensor import sym_to_vec  # noqa: E402
+from jaxvisco._fem._tensor import sym_to_vec  # noqa: E402
+from jaxvisco._solver._newton import NewtonKrylov, solve_step  # noqa: E402
+from jaxvisco._solver._tangent import empty_tangent  # noqa: E402
+from jaxvisco._time_element._estimate import defect_matrices, defects, dense_state  # noqa: E402
+from jaxvisco._time_element._step import make_context, predictor, step_outcome  # noqa: E402
 
 
 @eqx.filter_jit

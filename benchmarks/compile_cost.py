@@ -25,11 +25,11 @@ from common import jv, lshape, machine, schemes, write_json  # noqa: I001
 import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from jaxvisco._krylov import gmres  # noqa: E402
-from jaxvisco._newton import solve_step  # noqa: E402
-from jaxvisco._simulate import _run  # noqa: E402
-from jaxvisco._step import make_context, predictor, residual, step_outcome  # noqa: E402
-from jaxvisco._tangent import empty_tangent, form_tangent, schur_solve  # noqa: E402
+from jaxvisco._fem._krylov import gmres  # noqa: E402
+from jaxvisco._integrate._simulate import _run  # noqa: E402
+from jaxvisco._solver._newton import solve_step  # noqa: E402
+from jaxvisco._solver._tangent import empty_tangent, form_tangent, schur_solve  # noqa: E402
+from jaxvisco._time_element._step import make_context, predictor, residual, step_outcome  # noqa: E402
 
 PARTS = ("residual", "linearize_jvp", "form_tangent", "schur_solve", "gmres", "solve_step", "step_outcome",
          "diagnostics", "simulate")
@@ -67,7 +67,7 @@ def part(name, dim, refinement, scheme_name, mass):
         fn, args = (lambda c, u, t: solve_step(solver, scheme, scene, c, u, t)), (ctx, U, tan)
     elif name == "step_outcome":
         def fn(c, u, t):
-            r = jv._newton.NewtonResult(u, jnp.asarray(True), jnp.asarray(1), jnp.asarray(1), jnp.asarray(0), jnp.asarray(0.0), t)
+            r = jv._solver._newton.NewtonResult(u, jnp.asarray(True), jnp.asarray(1), jnp.asarray(1), jnp.asarray(0), jnp.asarray(0.0), t)
             return step_outcome(scheme, scene, c, r)
         args = (ctx, U, tan)
     elif name == "diagnostics":

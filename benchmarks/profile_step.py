@@ -21,7 +21,7 @@ from common import jv, lshape, machine, schemes, write_json  # noqa: I001
 
 import numpy as np  # noqa: E402
 
-from jaxvisco import _sparse  # noqa: E402
+from jaxvisco._solver import _sparse  # noqa: E402
 
 TIMES = collections.defaultdict(lambda: [0, 0.0])
 

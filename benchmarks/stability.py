@@ -19,7 +19,7 @@ from common import RESULTS, jv, machine, write_json  # noqa: I001
 
 import numpy as np  # noqa: E402
 
-from jaxvisco._frames import relative_kinetic_energy  # noqa: E402
+from jaxvisco._integrate._frames import relative_kinetic_energy  # noqa: E402
 from jaxvisco.scenes._lshape import PAPER  # noqa: E402
 
 EQ_TOL = 1e-8

@@ -24,7 +24,7 @@ import time
 from common import jv, lshape, machine, write_json  # noqa: I001
 
 import jax  # noqa: E402
-from jaxvisco._step import make_context, residual, predictor  # noqa: E402
+from jaxvisco._time_element._step import make_context, residual, predictor  # noqa: E402
 import equinox as eqx  # noqa: E402
 import numpy as np  # noqa: E402
 

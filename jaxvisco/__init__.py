@@ -6,28 +6,31 @@ jaxvisco computes in float64 and never switches precision behind your back: call
 
 from . import scenes as scenes
 from . import time_functions as time_functions
-from ._batch import sharded_map as sharded_map
-from ._boundary import boundary_facets as boundary_facets
-from ._boundary import facet_area as facet_area
-from ._boundary import facet_type as facet_type
-from ._boundary import facets_from_nodes as facets_from_nodes
-from ._boundary import local_facets as local_facets
-from ._boundary import nodes_where as nodes_where
-from ._boundary import pressure_load as pressure_load
-from ._boundary import traction_load as traction_load
+from ._config import __version__ as __version__
 from ._config import enable_compilation_cache as enable_compilation_cache
 from ._config import require_x64 as require_x64
-from ._drive import drive as drive
-from ._elements import ElementType as ElementType
-from ._elements import element_type as element_type
-from ._generators import box as box
-from ._generators import lshape_mesh as lshape_mesh
-from ._generators import rectangle as rectangle
-from ._groups import MeshGroups as MeshGroups
-from ._groups import read_mesh as read_mesh
-from ._identify import Identification as Identification
-from ._identify import identify as identify
-from ._identify import with_parameters as with_parameters
+from ._fem._boundary import boundary_facets as boundary_facets
+from ._fem._boundary import facet_area as facet_area
+from ._fem._boundary import facet_type as facet_type
+from ._fem._boundary import facets_from_nodes as facets_from_nodes
+from ._fem._boundary import local_facets as local_facets
+from ._fem._boundary import nodes_where as nodes_where
+from ._fem._boundary import pressure_load as pressure_load
+from ._fem._boundary import traction_load as traction_load
+from ._fem._elements import ElementType as ElementType
+from ._fem._elements import element_type as element_type
+from ._fem._generators import box as box
+from ._fem._generators import lshape_mesh as lshape_mesh
+from ._fem._generators import rectangle as rectangle
+from ._fem._groups import MeshGroups as MeshGroups
+from ._fem._groups import read_mesh as read_mesh
+from ._fem._mesh import Mesh as Mesh
+from ._integrate._schedule import StepTo as StepTo
+from ._integrate._simulate import simulate as simulate
+from ._integrate._solution import Solution as Solution
+from ._integrate._solution import SolverError as SolverError
+from ._integrate._stepsize import PIDController as PIDController
+from ._integrate._stepsize import SaveAt as SaveAt
 from ._io import Restart as Restart
 from ._io import ResultsWriter as ResultsWriter
 from ._io import read_restart as read_restart
@@ -36,35 +39,31 @@ from ._io import save as save
 from ._materials import NeoHooke as NeoHooke
 from ._materials import ReeseGovindjee as ReeseGovindjee
 from ._materials import paper_material as paper_material
-from ._mesh import Mesh as Mesh
-from ._newton import NewtonKrylov as NewtonKrylov
-from ._ode import SemiDiscrete as SemiDiscrete
-from ._ode import semidiscrete as semidiscrete
-from ._resume import resume as resume
 from ._scene import Scene as Scene
 from ._scene import State as State
-from ._scenefile import SceneFile as SceneFile
-from ._scenefile import read_scene_file as read_scene_file
-from ._schedule import StepTo as StepTo
-from ._simulate import simulate as simulate
-from ._solution import Solution as Solution
-from ._solution import SolverError as SolverError
-from ._stepsize import PIDController as PIDController
-from ._stepsize import SaveAt as SaveAt
-from ._time_element import (
+from ._scenefile._scenefile import SceneFile as SceneFile
+from ._scenefile._scenefile import read_scene_file as read_scene_file
+from ._solver._newton import NewtonKrylov as NewtonKrylov
+from ._time_element._time_element import (
     AbstractTimeElement as AbstractTimeElement,
 )
-from ._time_element import (
+from ._time_element._time_element import (
     Midpoint as Midpoint,
 )
-from ._time_element import (
+from ._time_element._time_element import (
     Newmark as Newmark,
 )
-from ._time_element import (
+from ._time_element._time_element import (
     cG as cG,
 )
-from ._time_element import (
+from ._time_element._time_element import (
     eG as eG,
 )
-
-__version__ = "0.1.0"
+from ._tools._batch import sharded_map as sharded_map
+from ._tools._drive import drive as drive
+from ._tools._identify import Identification as Identification
+from ._tools._identify import identify as identify
+from ._tools._identify import with_parameters as with_parameters
+from ._tools._ode import SemiDiscrete as SemiDiscrete
+from ._tools._ode import semidiscrete as semidiscrete
+from ._tools._resume import resume as resume

@@ -21,6 +21,8 @@ import jax.numpy as jnp
 
 from . import _export
 
+__version__ = "0.1.0"  # jaxvisco.__version__ (defined here so that inner layers can read it)
+
 
 def require_x64() -> None:
     """Raise a clear error if JAX is not running in float64."""

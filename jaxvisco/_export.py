@@ -64,7 +64,7 @@ def record_pattern(name, args):
 
 
 def _builders():
-    from ._tangent import position_pattern
+    from ._solver._tangent import position_pattern
 
     return {"position_pattern": position_pattern}
 
@@ -214,7 +214,7 @@ def call(fn, name, args, kwargs, options):
     """`fn(*args, **kwargs)` as a compiled program, from an exported entry where one is
     stored (exporting and storing it otherwise). Raises `Uncacheable` where the key
     cannot describe the static arguments; the caller then runs `fn` the usual way."""
-    from ._sparse import backend
+    from ._solver._sparse import backend
 
     folder = directory()
     if folder is None:

@@ -10,7 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._tensor import ddot, det3, dev, inv3, sym
+from ._fem._tensor import ddot, det3, dev, inv3, sym
 from ._validation import check_positive
 
 

@@ -8,9 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._config import require_x64
-from ._krylov import pcg
+from ._fem._krylov import pcg
+from ._fem._space import Discretization, StaticArray
 from ._materials import ReeseGovindjee
-from ._space import Discretization, StaticArray
 from ._time_functions import AbstractTimeFunction, Constant
 from ._validation import _concrete, check_finite, check_positive
 
@@ -140,7 +140,7 @@ class Scene(eqx.Module):
     def from_file(cls, path) -> "Scene":
         """The scene a TOML scene file describes (`jaxvisco.read_scene_file` reads the
         rest: integrator, steps, output)."""
-        from ._scenefile import scene_from_file
+        from ._scenefile._scenefile import scene_from_file
 
         return scene_from_file(path)
 

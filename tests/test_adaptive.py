@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import jaxvisco as jv
-from jaxvisco._estimate import defect_matrices, defects, dense_state
-from jaxvisco._newton import solve_step
-from jaxvisco._step import make_context, predictor, step_outcome
-from jaxvisco._tangent import empty_tangent
+from jaxvisco._solver._newton import solve_step
+from jaxvisco._solver._tangent import empty_tangent
+from jaxvisco._time_element._estimate import defect_matrices, defects, dense_state
+from jaxvisco._time_element._step import make_context, predictor, step_outcome
 from jaxvisco.cli import main
 
 TIGHT = jv.NewtonKrylov(rtol=1e-12)
@@ -88,8 +88,8 @@ def test_estimate_matches_true_local_error(lshape):
                               initial_velocity=v, solver=TIGHT)
             idx = m * np.arange(1, len(sigma) + 1)
             true_x = np.asarray(states.x) - np.asarray(ref.x)[idx]
-            true_g = np.asarray(jv._tensor.sym_to_vec(states.gamma)) - np.asarray(
-                jv._tensor.sym_to_vec(ref.gamma))[idx]
+            true_g = np.asarray(jv._fem._tensor.sym_to_vec(states.gamma)) - np.asarray(
+                jv._fem._tensor.sym_to_vec(ref.gamma))[idx]
             eff_x = max(_rms(e) for e in e_x) / max(_rms(e) for e in true_x)
             eff_g = max(_rms(e) for e in e_g) / max(_rms(e) for e in true_g)
             assert 0.3 <= eff_x <= 3.0, (frame, h, eff_x)

@@ -91,17 +91,17 @@ def test_bad_schedule(dt, t_end, pattern):
 
 def test_schedule_times_exact():
     """Step end times are t0 + m h within a piece and the piece's end exactly, never a sum."""
-    _, ts = jv._schedule.step_times(0.0, 2.0, 0.1)
+    _, ts = jv._integrate._schedule.step_times(0.0, 2.0, 0.1)
     assert ts[-1] == 2.0 and len(ts) == 21
     np.testing.assert_array_equal(ts[:-1], 0.1 * np.arange(20))
-    _, ts = jv._schedule.step_times(0.0, 25.0, [(20.0, 0.1), (float("inf"), 1.0)])
+    _, ts = jv._integrate._schedule.step_times(0.0, 25.0, [(20.0, 0.1), (float("inf"), 1.0)])
     assert ts[200] == 20.0 and ts[-1] == 25.0 and np.array_equal(ts[201:], 20.0 + np.arange(1, 6))
     steps = jv.StepTo.from_schedule(0.0, 0.3, 0.1)
     assert steps.ts[-1] == 0.3 and len(steps) == 3
     with pytest.raises(ValueError, match=r"StepTo times must increase strictly, got ts\[1\] = 0.2 then ts\[2\] = 0.2"):
         jv.StepTo([0.0, 0.2, 0.2])
     with pytest.raises(ValueError, match=r"t0 = 1.0 disagrees with the StepTo times"):
-        jv._schedule.step_times(1.0, None, jv.StepTo([0.0, 0.5]))
+        jv._integrate._schedule.step_times(1.0, None, jv.StepTo([0.0, 0.5]))
 
 
 @pytest.mark.parametrize("argv, needle", [

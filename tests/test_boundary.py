@@ -8,7 +8,7 @@ import meshio
 import numpy as np
 import pytest
 
-from jaxvisco._boundary import (
+from jaxvisco._fem._boundary import (
     _boundary,
     _geometry,
     boundary_facets,
@@ -19,10 +19,10 @@ from jaxvisco._boundary import (
     pressure_load,
     traction_load,
 )
-from jaxvisco._elements import element_type
-from jaxvisco._generators import box, lshape_mesh, rectangle
-from jaxvisco._groups import read_mesh
-from jaxvisco._mesh import Mesh
+from jaxvisco._fem._elements import element_type
+from jaxvisco._fem._generators import box, lshape_mesh, rectangle
+from jaxvisco._fem._groups import read_mesh
+from jaxvisco._fem._mesh import Mesh
 
 DATA = pathlib.Path(__file__).parent / "data"
 ELEMENTS_2D = ["tri3", "tri6", "quad4", "quad8", "quad9"]

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import jaxvisco
-from jaxvisco.cli import chunk_size, energy_warning, main, parse_schedule
+from jaxvisco.cli import main
+from jaxvisco.cli._main import chunk_size, energy_warning, parse_schedule
 
 
 @pytest.mark.parametrize("sub", [None, "paper", "run", "plot", "scene-template"])
@@ -85,7 +86,7 @@ def test_plot_shows_momentum_drift(run_file):
     import matplotlib.pyplot as plt
 
     from jaxvisco import read_results
-    from jaxvisco.cli import plot_figure
+    from jaxvisco.cli._main import plot_figure
 
     r = read_results(run_file)
     fig = plot_figure(r)

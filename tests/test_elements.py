@@ -7,9 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxvisco._elements import ElementType, element_type
-from jaxvisco._mesh import Mesh
-from jaxvisco._quadrature import gauss_legendre, quadrature
+from jaxvisco._fem._elements import ElementType, element_type
+from jaxvisco._fem._mesh import Mesh
+from jaxvisco._fem._quadrature import gauss_legendre, quadrature
 
 NAMES = ["tri3", "quad4", "tet4", "hex8", "tri6", "quad8", "quad9", "tet10", "hex20", "hex27"]
 REF_VOLUME = {"tri": 0.5, "quad": 4.0, "tet": 1 / 6, "hex": 8.0}

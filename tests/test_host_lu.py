@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxvisco as jv
-import jaxvisco._sparse as sparse
+import jaxvisco._solver._sparse as sparse
 
 from helpers import subprocess_env
 

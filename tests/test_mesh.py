@@ -4,9 +4,9 @@ import meshio
 import numpy as np
 import pytest
 
-from jaxvisco._elements import element_type
-from jaxvisco._generators import box, lshape_mesh, rectangle
-from jaxvisco._mesh import Mesh
+from jaxvisco._fem._elements import element_type
+from jaxvisco._fem._generators import box, lshape_mesh, rectangle
+from jaxvisco._fem._mesh import Mesh
 
 DATA = pathlib.Path(__file__).parent / "data"
 EXAMPLE_MSH = pathlib.Path(__file__).parent.parent / "examples" / "data" / "lshape2d.msh"

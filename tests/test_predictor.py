@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import jaxvisco as jv
-from jaxvisco._step import rigid_motion_increments
+from jaxvisco._time_element._step import rigid_motion_increments
 
 
 def _pairwise(x):

@@ -20,8 +20,9 @@ from jaxvisco import (
     read_scene_file,
     traction_load,
 )
-from jaxvisco._scenefile import tomllib
-from jaxvisco.cli import main, run_chunked
+from jaxvisco._scenefile._scenefile import tomllib
+from jaxvisco.cli import main
+from jaxvisco.cli._main import run_chunked
 from jaxvisco.time_functions import Ramp, Step
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -241,7 +242,7 @@ def test_paper_scene_is_the_builtin_scene():
     for bit), so its runs are those of `jaxvisco run` (the run itself: the slow test)."""
     import jax
 
-    from jaxvisco.cli import make_scene
+    from jaxvisco.cli._main import make_scene
 
     sf = read_scene_file(os.path.join(SCENES, "paper.toml"))
     a, ta = jax.tree_util.tree_flatten(sf.scene)
@@ -540,7 +541,7 @@ def test_cli_bad_scene_writes_nothing(argv_tail, text, needle, tmp_path, capsys)
 
 def test_cli_options_override_the_file(tmp_path):
     """Flags given on the command line win; the others come from the scene file."""
-    from jaxvisco.cli import _scene_file_options, build_parser
+    from jaxvisco.cli._main import _scene_file_options, build_parser
 
     (tmp_path / "s.toml").write_text(STRIP.replace("[time]", "[time]\nmax_halvings = 4"))
     args = build_parser().parse_args(["run", str(tmp_path / "s.toml")])
@@ -572,7 +573,7 @@ def test_plot_of_a_loaded_run_balances_the_work(strip_run):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxvisco.cli import plot_figure
+    from jaxvisco.cli._main import plot_figure
 
     _, cli, _ = strip_run
     fig = plot_figure(cli)

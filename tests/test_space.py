@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from helpers import random_rotation, random_spd_batch
-from jaxvisco._generators import box, lshape_mesh, rectangle
+from jaxvisco._fem._generators import box, lshape_mesh, rectangle
+from jaxvisco._fem._mesh import Mesh
 from jaxvisco._materials import NeoHooke, ReeseGovindjee, paper_material
-from jaxvisco._mesh import Mesh
 from jaxvisco._scene import Scene, angular_momentum
 
 DATA = os.path.join(os.path.dirname(__file__), "data")

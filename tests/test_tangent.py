@@ -14,9 +14,9 @@ import pytest
 from helpers import central_difference, rel_err
 
 import jaxvisco as jv
-from jaxvisco import _tangent
-from jaxvisco._step import Unknowns, make_context, predictor, residual
-from jaxvisco._tangent import form_tangent, schur_solve
+from jaxvisco._solver import _tangent
+from jaxvisco._solver._tangent import form_tangent, schur_solve
+from jaxvisco._time_element._step import Unknowns, make_context, predictor, residual
 
 
 def _scene(viscous, fixed):

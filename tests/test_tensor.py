@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from helpers import random_rotation, random_spd, random_sym
-from jaxvisco._tensor import (
+from jaxvisco._fem._tensor import (
     cofactor3,
     ddot,
     det3,

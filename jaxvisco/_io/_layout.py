@@ -36,11 +36,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._integrate._solution import STEP_KEYS
+
 FORMAT = 2
 FRAME_KEYS = ("energy", "kinetic", "free_energy", "dissipated", "dissipation_rate", "external_work",
               "linear_momentum", "angular_momentum")
-STEP_KEYS = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "chord_iterations", "residual",
-             "rejections")
 FRAME_DATASETS = ("time", "nodal/x", "nodal/p", "qp/gamma") + tuple("diagnostics/" + k for k in FRAME_KEYS)
 STEP_DATASETS = tuple("steps/" + k for k in STEP_KEYS)
 XDMF_FIELDS = ("geometry", "displacement", "momentum")

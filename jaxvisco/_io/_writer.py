@@ -87,7 +87,7 @@ class ResultsWriter:
         g.create_dataset("cells", data=np.asarray(mesh.cells)).attrs["cell_type"] = str(mesh.cell_type)
         import jax
 
-        from .. import __version__
+        from .._config import __version__
 
         self.f.attrs["format"] = FORMAT
         self.f.attrs["jaxvisco_version"] = __version__
@@ -211,7 +211,7 @@ class ResultsWriter:
         predictor velocity, if not the velocity of the momenta."""
         if self.scene is None:
             raise TypeError("write_initial_state needs the Scene: give it to ResultsWriter, not just its mesh.")
-        from .._solution import initial_solution
+        from .._integrate._solution import initial_solution
 
         self.append(initial_solution(self.scene, state, t0, velocity))
 

@@ -2,7 +2,7 @@
 
 import jax.numpy as jnp
 
-from .._generators import lshape_mesh
+from .._fem._generators import lshape_mesh
 from .._materials import NeoHooke, ReeseGovindjee
 from .._scene import Scene
 

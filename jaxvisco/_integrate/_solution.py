@@ -6,12 +6,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._config import jit
-from ._io._layout import STEP_KEYS
-from ._scene import State
+from .._config import jit
+from .._scene import State
 
 RUNNING, FAILED, EQUILIBRIUM, DONE, MAX_STEPS = 0, 1, 2, 3, 4
 STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done", MAX_STEPS: "max_steps"}
+STEP_KEYS = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "chord_iterations", "residual",
+             "rejections")
 
 
 class SolverError(RuntimeError):

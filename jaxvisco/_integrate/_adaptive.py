@@ -14,13 +14,13 @@ more accepted steps ends with ``status == "max_steps"`` and everything up to the
 import jax
 import jax.numpy as jnp
 
-from ._config import jit
-from ._estimate import dense_state, scaled_error
+from .._config import jit
+from .._solver._newton import solve_step
+from .._solver._tangent import empty_tangent
+from .._time_element._estimate import dense_state, scaled_error
+from .._time_element._step import make_context, predictor, step_outcome
 from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
-from ._newton import solve_step
 from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
-from ._step import make_context, predictor, step_outcome
-from ._tangent import empty_tangent
 
 
 @jit(export=True)

@@ -3,8 +3,8 @@
 import jax
 import jax.numpy as jnp
 
-from ._scene import Scene
-from ._tensor import small_solve
+from .._fem._tensor import small_solve
+from .._scene import Scene
 
 
 def relative_kinetic_energy(scene: Scene, x, p):

@@ -67,7 +67,7 @@ class MaterialReader:
 
     def branches(self, t, where):
         """The `ReeseGovindjee` material of the keys `_MATERIAL_KEYS` of table `t`."""
-        from ._materials import NeoHooke, ReeseGovindjee
+        from .._materials import NeoHooke, ReeseGovindjee
 
         eta = {k: t.number(k, math.inf, positive=True, allow_inf=True) for k in ("eta_dev", "eta_vol")}
 

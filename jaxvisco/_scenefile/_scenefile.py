@@ -107,8 +107,8 @@ class _Reader(_MaterialReader):
 
     # ------------------------------------------------------------------ mesh and groups
     def mesh_and_groups(self):
-        from ._generators import box, lshape_mesh, rectangle
-        from ._groups import MeshGroups, read_mesh
+        from .._fem._generators import box, lshape_mesh, rectangle
+        from .._fem._groups import MeshGroups, read_mesh
 
         data = self.doc.get("mesh")
         gen = data.get("generator") if isinstance(data, dict) else None
@@ -200,7 +200,7 @@ class _Reader(_MaterialReader):
     def facets(self, t, key="facets"):
         """The outward boundary facets of the groups named by `t[key]`: facet groups of
         the mesh file, or the boundary facets of node groups."""
-        from ._boundary import facets_from_nodes
+        from .._fem._boundary import facets_from_nodes
 
         out = []
         for gname in t.names(key):
@@ -229,7 +229,7 @@ class _Reader(_MaterialReader):
         return sorted(set(out))
 
     def time_function(self, t, required=False):
-        from ._time_functions import time_function_from_dict
+        from .._time_functions import time_function_from_dict
 
         if not t.has("time"):
             if required:
@@ -239,8 +239,8 @@ class _Reader(_MaterialReader):
 
     # ------------------------------------------------------------------ the scene
     def scene(self):
-        from ._boundary import pressure_load, traction_load
-        from ._scene import Scene
+        from .._fem._boundary import pressure_load, traction_load
+        from .._scene import Scene
 
         self.mesh, self.groups = self.mesh_and_groups()
         dim, n = self.mesh.dim, self.mesh.n_nodes
@@ -314,9 +314,9 @@ class _Reader(_MaterialReader):
 
     # ------------------------------------------------------------------ the run
     def run_options(self):
-        from ._newton import NewtonKrylov
-        from ._schedule import StepTo
-        from ._time_element import Midpoint, Newmark, cG, eG
+        from .._integrate._schedule import StepTo
+        from .._solver._newton import NewtonKrylov
+        from .._time_element._time_element import Midpoint, Newmark, cG, eG
 
         t = self.table("integrator", ("name", "order"), required=False)
         name = t.string("name", "eG")

@@ -33,9 +33,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._implicit import solve_step_implicit
-from ._step import make_context, predictor, step_outcome
-from ._tangent import empty_tangent
+from .._solver._implicit import solve_step_implicit
+from .._solver._tangent import empty_tangent
+from .._time_element._step import make_context, predictor, step_outcome
 
 
 class Record(eqx.Module):

@@ -1,4 +1,4 @@
-// XLA foreign-function targets for jaxvisco's host sparse LU (see jaxvisco/_sparse.py).
+// XLA foreign-function targets for jaxvisco's host sparse LU (see jaxvisco/_solver/_sparse.py).
 //
 // Why an extension: a `jax.pure_callback` makes JAX refuse to write the program to its
 // persistent compilation cache (the callback is a Python object inside the program), so

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import require_x64
+from .._config import require_x64
 from ._elements import ElementType, element_type
 
 # Topological dimension of meshio cell types we may meet in files (to pick the blocks of

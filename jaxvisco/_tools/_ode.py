@@ -22,10 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from ._config import _top_level, compiler_options
-from ._scene import Scene, State, _right_cauchy_green
-from ._space import embed_3d
-from ._tensor import sym_to_vec, vec_to_sym
+from .._config import _top_level, compiler_options
+from .._fem._space import embed_3d
+from .._fem._tensor import sym_to_vec, vec_to_sym
+from .._scene import Scene, State, _right_cauchy_green
 
 
 class SemiDiscrete:

@@ -432,7 +432,7 @@ def _scene_file_options(args):
     `--resume` continues) and take every run option not given on the command line from
     it; without a scene file fill in the built-in defaults. Returns ``(SceneFile or None,
     the file's schedule as messages name it, or None)``."""
-    from ._scenefile import read_scene_file
+    from .._scenefile._scenefile import read_scene_file
 
     origin = None
     if args.scene is None and args.scene_source is None:
@@ -785,7 +785,7 @@ def build_parser():
 
 
 def _scene_template(args):
-    from ._scenetemplate import TEMPLATE
+    from .._scenefile._scenetemplate import TEMPLATE
 
     sys.stdout.write(TEMPLATE)
     return 0

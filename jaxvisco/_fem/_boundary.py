@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._validation import _concrete
 from ._elements import element_type
-from ._validation import _concrete
 
 _FACET_TYPE = {
     "tri3": "line2", "quad4": "line2", "tri6": "line3", "quad8": "line3",

@@ -9,11 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import jit
-from ._materials import ReeseGovindjee
-from ._tensor import small_solve, sym_to_vec, vec_to_sym
-from ._time_element import AbstractTimeElement, eG
-from ._validation import check_finite
+from .._config import jit
+from .._fem._tensor import small_solve, sym_to_vec, vec_to_sym
+from .._materials import ReeseGovindjee
+from .._time_element._time_element import AbstractTimeElement, eG
+from .._validation import check_finite
 
 
 def drive(material: ReeseGovindjee, F, ts, integrator: AbstractTimeElement = eG(1), gamma0=None,

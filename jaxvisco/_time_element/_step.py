@@ -13,8 +13,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._scene import Scene, State
-from ._tensor import small_solve, sym_to_vec, vec_to_sym
+from .._fem._tensor import small_solve, sym_to_vec, vec_to_sym
+from .._scene import Scene, State
 
 
 class Unknowns(eqx.Module):

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._config import jit
-from ._newton import NewtonKrylov
-from ._simulate import simulate
+from .._config import jit
+from .._integrate._simulate import simulate
+from .._solver._newton import NewtonKrylov
 
 PARAMETERS = {
     "eta_dev": lambda s: s.material.eta_dev,

@@ -15,20 +15,28 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._config import _top_level, jit
+from .._scene import Scene, State
+from .._solver._newton import NewtonKrylov, solve_step
+from .._solver._tangent import empty_tangent, position_pattern
+from .._time_element._step import make_context, predictor, step_outcome
+from .._time_element._time_element import AbstractTimeElement
+from .._validation import check_finite
 from ._adaptive import run_adaptive
-from ._config import _top_level, jit
-from ._differentiable import (check_replay, empty_record, frame_tangents, record_frame, record_size, record_substep,
-                              replay, segment_length)
+from ._differentiable import (
+    check_replay,
+    empty_record,
+    frame_tangents,
+    record_frame,
+    record_size,
+    record_substep,
+    replay,
+    segment_length,
+)
 from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
-from ._newton import NewtonKrylov, solve_step
-from ._scene import Scene, State
 from ._schedule import StepTo, step_times
 from ._solution import DONE, EQUILIBRIUM, FAILED, RUNNING, Solution, SolverError
-from ._step import make_context, predictor, step_outcome
 from ._stepsize import PIDController, SaveAt
-from ._tangent import empty_tangent, position_pattern
-from ._time_element import AbstractTimeElement
-from ._validation import check_finite
 
 
 def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, save_every=1,

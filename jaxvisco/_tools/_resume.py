@@ -2,9 +2,9 @@
 
 import os
 
-from ._io import ResultsWriter, read_restart
-from ._simulate import simulate
-from ._solution import SolverError
+from .._integrate._simulate import simulate
+from .._integrate._solution import SolverError
+from .._io import ResultsWriter, read_restart
 
 
 def resume(path, scene, integrator, t_end, dt, append=False, throw=True, **kwargs):

@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._quadrature import gauss_legendre
-from ._tensor import ddot, sym, sym_to_vec
+from .._fem._quadrature import gauss_legendre
+from .._fem._tensor import ddot, sym, sym_to_vec
 from ._time_basis import time_element_matrices
 
 # Regularization of eG's algorithmic factor, (strain increment)^2 units:

@@ -4,7 +4,7 @@ import functools
 
 import numpy as np
 
-from ._quadrature import gauss_legendre
+from .._fem._quadrature import gauss_legendre
 
 
 def lagrange(nodes, points):

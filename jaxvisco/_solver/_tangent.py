@@ -21,10 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._export import record_pattern
+from .._export import record_pattern
+from .._fem._tensor import small_inv, sym_to_vec, vec_to_sym
+from .._time_element._step import Unknowns, constraint_scale, force_term, nodal_fields
 from ._sparse import HostLU, lu_factor, lu_solve
-from ._step import Unknowns, constraint_scale, force_term, nodal_fields
-from ._tensor import small_inv, sym_to_vec, vec_to_sym
 
 
 def position_pattern(cells, k, n_nodes, dim, fixed=None):

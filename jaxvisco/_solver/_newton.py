@@ -25,8 +25,8 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 
-from ._krylov import gmres
-from ._step import residual
+from .._fem._krylov import gmres
+from .._time_element._step import residual
 from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
 
 _LINEAR_SOLVERS = ("krylov", "direct")

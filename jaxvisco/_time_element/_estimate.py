@@ -42,10 +42,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._quadrature import gauss_legendre
-from ._scene import _right_cauchy_green
+from .._fem._quadrature import gauss_legendre
+from .._fem._tensor import sym_to_vec, vec_to_sym
+from .._scene import _right_cauchy_green
 from ._step import increments, momenta
-from ._tensor import sym_to_vec, vec_to_sym
 from ._time_basis import lagrange, lobatto_nodes
 
 
@@ -119,7 +119,7 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol):
 
 def dense_state(scheme, scene, ctx, U, sigma):
     """The step's polynomial at `t_n + sigma h` (`sigma` in [0, 1], traced): a `State`."""
-    from ._scene import State
+    from .._scene import State
 
     X, P, G = nodal_values(scheme, scene, ctx, U)
     nodes = lobatto_nodes(scheme.k)

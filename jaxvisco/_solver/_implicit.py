@@ -15,8 +15,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._time_element._step import residual
 from ._newton import _scale, solve_step
-from ._step import residual
 from ._tangent import form_tangent, schur_solve
 
 _SWEEPS = 2

@@ -8,7 +8,7 @@ matrix gives the token -1 and solves with it return NaN, which the Newton loop t
 a failed step.
 
 How compiled code reaches the host: by default through two XLA foreign-function targets
-(`jaxvisco/_ffi/hostlu.cc`, built by ``pip install .``) that hand their buffers to
+(`jaxvisco/_solver/_ffi/hostlu.cc`, built by ``pip install .``) that hand their buffers to
 `_host_call` here. They are referred to by name, so JAX's persistent compilation cache
 stores the programs that use them; with `jax.pure_callback` (the fallback when the
 extension is missing, or with ``JAXVISCO_HOST_LU=callback``) JAX refuses to cache a
@@ -52,7 +52,7 @@ def backend():
         raise ValueError(f"JAXVISCO_HOST_LU must be one of {BACKENDS}, got {choice!r}.")
     if choice == "ffi" and _hostlu is None:
         raise ValueError("JAXVISCO_HOST_LU=ffi, but jaxvisco was installed without its extension "
-                         "(jaxvisco._ffi._hostlu); reinstall with a C++ compiler, or use JAXVISCO_HOST_LU=callback.")
+                         "(jaxvisco._solver._ffi._hostlu); reinstall with a C++ compiler, or use JAXVISCO_HOST_LU=callback.")
     return choice
 
 
