@@ -57,6 +57,25 @@ class Uncacheable(Exception):
     """A static argument that the key cannot describe safely."""
 
 
+# Registered by the layers above (this module is infrastructure and imports none of
+# them): builders of host factorization patterns by name, and checks that may refuse
+# to export (each returns None or the reason).
+_BUILDERS = {}
+_CHECKS = []
+
+
+def register_pattern(name, builder):
+    """Make `builder(*args)` (e.g. `_tangent.position_pattern`) the way to rebuild the
+    patterns recorded under `name` when a stored program is loaded."""
+    _BUILDERS[name] = builder
+
+
+def register_check(check):
+    """`check()` -> None, or why no program may be exported now (e.g. `_sparse`: the
+    callback backend)."""
+    _CHECKS.append(check)
+
+
 def record_pattern(name, args):
     """Called by the builders of host factorization patterns (`_tangent.position_pattern`)."""
     if _recorder is not None:
@@ -64,9 +83,7 @@ def record_pattern(name, args):
 
 
 def _builders():
-    from ._solver._tangent import position_pattern
-
-    return {"position_pattern": position_pattern}
+    return _BUILDERS
 
 
 class _KeyPickler(pickle.Pickler):
@@ -214,13 +231,13 @@ def call(fn, name, args, kwargs, options):
     """`fn(*args, **kwargs)` as a compiled program, from an exported entry where one is
     stored (exporting and storing it otherwise). Raises `Uncacheable` where the key
     cannot describe the static arguments; the caller then runs `fn` the usual way."""
-    from ._solver._sparse import backend
-
     folder = directory()
     if folder is None:
         raise Uncacheable("no persistent cache directory")
-    if backend() != "ffi":
-        raise Uncacheable("host callbacks (JAXVISCO_HOST_LU=callback) cannot be exported")
+    for check in _CHECKS:
+        reason = check()
+        if reason is not None:
+            raise Uncacheable(reason)
     dyn, static = eqx.partition((args, kwargs), eqx.is_array)
     leaves, in_def = jax.tree_util.tree_flatten(dyn)
     skeleton = jax.tree_util.tree_map(_Aval, dyn)

@@ -36,11 +36,6 @@ LAYER_NAMES = {0: "infrastructure", 1: "fem", 2: "materials", 3: "model", 4: "ti
 # import cycle at load time). Removing one needs a design change; the test below fails
 # once an entry no longer occurs, so that this list only shrinks.
 KNOWN_UPWARD = {
-    # `jit(export=True)` (_config) hands programs to _export, which rebuilds the host
-    # factorization patterns they name (`_tangent.position_pattern`) and refuses to
-    # export under the callback backend (`_sparse.backend`).
-    ("jaxvisco._export", "jaxvisco._solver._tangent"),
-    ("jaxvisco._export", "jaxvisco._solver._sparse"),
     # The public `Scene.from_file` delegates to the scene-file parser, which builds the
     # scene and the run settings (integrator, solver, schedule) and so sits above them.
     ("jaxvisco._scene", "jaxvisco._scenefile._scenefile"),

@@ -97,6 +97,11 @@ def test_reverse_gradient_matches_finite_differences(scheme):
         assert rel <= 1e-6, f"d loss / d theta[{i}]: reverse {g[i]!r}, central FD {fd[i]!r}, rel. error {rel:.2e}"
 
 
+# 258 s of a 37-minute local suite (two programs of its own): out of CI. Forward mode is
+# checked against finite differences in CI by test_gradient_of_a_run_that_halves_its_steps;
+# every replayed sub-step starts from a fresh tangent, so the segmentation cannot enter.
+@pytest.mark.slow
+@pytest.mark.timeout(900)
 def test_forward_mode_equals_reverse_mode_and_checkpointing_changes_nothing():
     """jax.jvp through the run equals the gradient's projection; the segment length of
     the checkpointed loop does not change the result."""
@@ -112,6 +117,9 @@ def test_forward_mode_equals_reverse_mode_and_checkpointing_changes_nothing():
     np.testing.assert_allclose(np.asarray(g5), np.asarray(g), rtol=1e-10)
 
 
+# `differentiable=True` no longer selects another loop (every run is the same loop), so
+# this compares a run with itself at save_every 1 and 2: out of CI (73 s).
+@pytest.mark.slow
 def test_differentiable_run_equals_adaptive_run():
     scene = _scene()
     a = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.25, solver=SOLVER)
@@ -126,9 +134,11 @@ def test_differentiable_run_equals_adaptive_run():
 @pytest.mark.timeout(900)
 def test_gradient_of_a_run_that_halves_its_steps():
     """A plain call whose steps are too large for Newton: every nominal step is halved
-    (counts asserted). Its reverse-mode derivative follows the accepted sub-steps and
-    equals fourth-order central differences of the same call, whose points halve
-    identically (so they differentiate the same sub-step sequence)."""
+    (counts asserted). Its forward-mode derivative (`jax.jacfwd`: `jax.jvp` along each
+    parameter) follows the accepted sub-steps and equals fourth-order central
+    differences of the same call, whose points halve identically (so they differentiate
+    the same sub-step sequence). Reverse mode is checked in
+    test_reverse_gradient_matches_finite_differences; both differentiate the same replay."""
     scene = _scene()
 
     def run(theta):
@@ -138,7 +148,7 @@ def test_gradient_of_a_run_that_halves_its_steps():
         return sol.dissipated[-1] + sol.free_energy[-1] + 1e-3 * jnp.mean((sol.x[-1] - scene.x0) ** 2)
 
     theta = _theta0()
-    g = np.asarray(jax.grad(lambda th: loss(run(th)))(theta))
+    g = np.asarray(jax.jacfwd(lambda th: loss(run(th)))(theta))
     eps = 1e-2
     steps = np.array([1.0, -1.0, 2.0, -2.0]) * eps
     f = np.zeros((3, 4))
@@ -149,5 +159,5 @@ def test_gradient_of_a_run_that_halves_its_steps():
             f[i, j] = float(loss(sol))
     fd = (8 * (f[:, 0] - f[:, 1]) - (f[:, 2] - f[:, 3])) / (12 * eps)
     rel = np.abs(g - fd) / np.abs(fd)
-    print(f"reverse {g}, FD {fd}, rel. error {rel}")
+    print(f"forward mode {g}, FD {fd}, rel. error {rel}")
     assert np.all(rel <= 1e-6), (g, fd, rel)

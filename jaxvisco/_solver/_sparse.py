@@ -34,6 +34,8 @@ import scipy.sparse.linalg as spla
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
+from .._export import register_check
+
 try:
     from ._ffi import _hostlu
 except ImportError:  # built without the extension: the pure_callback path
@@ -54,6 +56,14 @@ def backend():
         raise ValueError("JAXVISCO_HOST_LU=ffi, but jaxvisco was installed without its extension "
                          "(jaxvisco._solver._ffi._hostlu); reinstall with a C++ compiler, or use JAXVISCO_HOST_LU=callback.")
     return choice
+
+
+def _exportable():
+    """`_export`'s check: `jax.export` cannot serialize host callbacks."""
+    return None if backend() == "ffi" else "host callbacks (JAXVISCO_HOST_LU=callback) cannot be exported"
+
+
+register_check(_exportable)
 
 
 class HostLU:

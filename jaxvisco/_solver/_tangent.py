@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import record_pattern
+from .._export import record_pattern, register_pattern
 from .._fem._tensor import small_inv, sym_to_vec, vec_to_sym
 from .._time_element._step import Unknowns, constraint_scale, force_term, nodal_fields
 from ._sparse import HostLU, lu_factor, lu_solve
@@ -32,6 +32,9 @@ def position_pattern(cells, k, n_nodes, dim, fixed=None):
     blocks, then one diagonal entry per held component and time node)."""
     record_pattern("position_pattern", (cells, k, n_nodes, dim, fixed))
     return _position_pattern(cells, k, n_nodes, dim, fixed)
+
+
+register_pattern("position_pattern", position_pattern)
 
 
 @functools.lru_cache(maxsize=32)
