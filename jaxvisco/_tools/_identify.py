@@ -20,6 +20,7 @@ import optax
 
 from .._config import jit
 from .._integrate._simulate import simulate
+from .._integrate._solution import FAILED
 from .._solver._newton import NewtonKrylov
 
 PARAMETERS = {
@@ -154,7 +155,7 @@ def _loss(st, scene, data, scale, z):
     pred = observe_checked(st.observe, sol, data.shape)
     # A failed run (a step that did not converge) counts as an infinitely bad fit: the
     # line search then backtracks instead of trusting a truncated trajectory.
-    return jnp.where(sol.status_code == 1, jnp.inf, jnp.sum((pred - data) ** 2) / scale)
+    return jnp.where(sol.status_code == FAILED, jnp.inf, jnp.sum((pred - data) ** 2) / scale)
 
 
 def observe_checked(observe, sol, shape):
