@@ -126,6 +126,10 @@ def test_dense_output(lshape):
     np.testing.assert_allclose(np.asarray(sol.energy)[[3, 7]], H, rtol=1e-12)
 
 
+# 194-270 s (four programs of its own, among them a reverse-mode one): out of CI for its
+# time. The derivative it takes is the plain loop's replay along StepTo(accepted steps),
+# which test_gradients checks against finite differences in CI.
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_gradient_along_accepted_steps(lshape):
     """`differentiable=True` with a controller differentiates the run along its accepted
