@@ -36,6 +36,7 @@ import jax.numpy as jnp
 from .._solver._implicit import solve_step_implicit
 from .._solver._tangent import empty_tangent
 from .._time_element._step import make_context, predictor, step_outcome
+from ._frames import frame_values
 
 
 class Record(eqx.Module):
@@ -82,14 +83,6 @@ def segment_length(n_slots, save_every=1, checkpoint_every=None):
     return max(1, min(int(checkpoint_every) * int(save_every), n_slots))
 
 
-def frame_values(scene, state, dissipated, work, save_gamma):
-    """What a saved frame holds besides its time."""
-    out = dict(x=state.x, p=state.p, dissipated=dissipated, external_work=work, **scene.diagnostics(state))
-    if save_gamma and state.gamma is not None:
-        out["gamma"] = state.gamma
-    return out
-
-
 def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     """Re-run the recorded sub-steps; differentiable in `scene`, `state0` and `v0`.
 
@@ -115,7 +108,7 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
             return dict(state=new, v=v_end, D=c["D"] + D, W=c["W"] + W, failed=c["failed"] | ~ok)
 
         c = jax.lax.cond(k < rec.n, attempt, lambda c: c, c)
-        return c, frame_values(scene, c["state"], c["D"], c["W"], save_gamma)
+        return c, frame_values(c["state"], scene.diagnostics(c["state"]), c["D"], c["W"], save_gamma)
 
     @jax.checkpoint
     def run_segment(c, inp):
@@ -125,7 +118,7 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     init = dict(state=state0, v=v_init, D=jnp.zeros((), dtype), W=jnp.zeros((), dtype), failed=jnp.asarray(False))
     c, ys = jax.lax.scan(run_segment, init, (ts, hs, idx))
     ys = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:size], ys)
-    first = frame_values(scene, state0, jnp.zeros((), dtype), jnp.zeros((), dtype), save_gamma)
+    first = frame_values(state0, scene.diagnostics(state0), jnp.zeros((), dtype), jnp.zeros((), dtype), save_gamma)
     return first, ys, c["v"], c["failed"]
 
 

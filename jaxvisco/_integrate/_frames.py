@@ -46,11 +46,17 @@ def frame_buffers(n_frames, t0, state0, diag0, save_gamma):
     return out
 
 
+def frame_values(state, diag, dissipated, work, with_gamma):
+    """What a saved frame holds besides its time (`gamma` only `with_gamma`)."""
+    out = dict(x=state.x, p=state.p, dissipated=dissipated, external_work=work, **diag)
+    if with_gamma and state.gamma is not None:
+        out["gamma"] = state.gamma
+    return out
+
+
 def write_frame(frames, idx, t, state, diag, dissipated, work):
     """`frames` with frame `idx` set."""
-    vals = dict(t=t, x=state.x, p=state.p, dissipated=dissipated, external_work=work, **diag)
-    if frames["gamma"] is not None:
-        vals["gamma"] = state.gamma
+    vals = dict(t=t, **frame_values(state, diag, dissipated, work, frames["gamma"] is not None))
     return {k: (None if b is None else b.at[idx].set(vals[k])) for k, b in frames.items()}
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from .._config import _top_level, jit
 from .._scene import Scene, State
+from .._solver._implicit import materialize_zeros
 from .._solver._newton import NewtonKrylov, solve_step
 from .._solver._tangent import empty_tangent, position_pattern
 from .._time_element._step import make_context, predictor, step_outcome
@@ -251,11 +252,9 @@ def _finish(sol, integrator, max_halvings, throw):
 
 @jit(export=True)
 def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0,
-         segment=None):
+         segment):
     """The time loop (`_loop`), compiled. `segment`: sub-steps per checkpointed segment
-    of its derivative (`_differentiable`; None: ceil(sqrt) of the record's size)."""
-    if segment is None:
-        segment = segment_length(record_size(hs.shape[0]))
+    of its derivative (`_differentiable`)."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, t0=t0, hs=hs, te=te, n_steps=n_steps,
                  save_every=save_every, save_gamma=save_gamma, eq_tol=eq_tol, max_halvings=max_halvings,
                  use_v0=use_v0, segment=segment)
@@ -273,18 +272,15 @@ def _loop(scene, state0, v0, **kw):
 def _loop_jvp(primals, tangents, *, segment, **kw):
     scene, state0, v0 = primals
     sol, rec = _probe(scene, state0, v0, **kw)
-    rec = check_replay(rec, False, rec)
 
     def fn(scene, state0, v0):
         return replay(kw["scheme"], kw["solver"], scene, state0, v0, kw["use_v0"], rec, kw["save_gamma"], segment)
 
     out, d_out = eqx.filter_jvp(fn, primals, tangents)
-    # Symbolic zeros (an output that does not depend on what is differentiated) -> zeros.
-    first, ys, v_end, failed = out
-    d_first, d_ys, d_v, _ = jax.tree_util.tree_map(lambda t, p: jnp.zeros_like(p) if t is None else t,
-                                                   d_out[:3] + (None,), (first, ys, v_end, failed),
-                                                   is_leaf=lambda t: t is None)
-    frames = check_replay(rec, failed, frame_tangents(rec, sol.n_saved, d_first, d_ys))
+    d_first, d_ys, d_v = materialize_zeros(d_out[:3], out[:3])
+    # The checks sit on the primal output, which every derivative evaluates.
+    sol = check_replay(rec, out[3], sol)
+    frames = frame_tangents(rec, sol.n_saved, d_first, d_ys)
     t_sol = jax.tree_util.tree_map(lambda _: None, sol)
     names = [k for k in frames if getattr(sol, k) is not None]
     t_sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names] + [s.end_velocity], t_sol,

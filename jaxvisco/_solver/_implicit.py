@@ -38,6 +38,13 @@ def refined_solve(matvec, precond, b, sweeps=_SWEEPS):
     return y
 
 
+def materialize_zeros(tangents, primals):
+    """`tangents` with each symbolic zero (`None`, an output that does not depend on what
+    is differentiated) replaced by zeros shaped like its primal."""
+    return jax.tree_util.tree_map(lambda t, p: jnp.zeros_like(p) if t is None else t, tangents, primals,
+                                  is_leaf=lambda t: t is None)
+
+
 @eqx.filter_custom_jvp
 def _solve(scene, ctx, U0, tangent, *, solver, scheme):
     return solve_step(solver, scheme, scene, ctx, U0, tangent)
@@ -51,9 +58,7 @@ def _solve_jvp(primals, tangents, *, solver, scheme):
     U = out.U
     res = lambda s, c: residual(scheme, s, c, U)  # noqa: E731
     R, dR = eqx.filter_jvp(res, (scene, ctx), (d_scene, d_ctx))
-    # Symbolic zeros (a block that does not depend on what is differentiated) -> zeros.
-    dR = jax.tree_util.tree_map(lambda t, r: jnp.zeros_like(r) if t is None else t, dR, R,
-                                is_leaf=lambda t: t is None)
+    dR = materialize_zeros(dR, R)
     sx = jnp.maximum(_scale(ctx, scene, R), 1e-300)  # R: the residual at U, from the JVP above
 
     def scaled(R):
