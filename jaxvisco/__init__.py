@@ -25,12 +25,23 @@ from ._fem._generators import rectangle as rectangle
 from ._fem._groups import MeshGroups as MeshGroups
 from ._fem._groups import read_mesh as read_mesh
 from ._fem._mesh import Mesh as Mesh
+from ._integrate._adjoint import AbstractAdjoint as AbstractAdjoint
+from ._integrate._adjoint import (
+    RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint,
+)
+from ._integrate._event import AbstractEvent as AbstractEvent
+from ._integrate._event import Equilibrium as Equilibrium
+from ._integrate._saveat import SaveAt as SaveAt
+from ._integrate._schedule import (
+    AbstractStepSizeController as AbstractStepSizeController,
+)
+from ._integrate._schedule import ConstantStepSize as ConstantStepSize
+from ._integrate._schedule import Schedule as Schedule
 from ._integrate._schedule import StepTo as StepTo
 from ._integrate._simulate import simulate as simulate
 from ._integrate._solution import Solution as Solution
 from ._integrate._solution import SolverError as SolverError
 from ._integrate._stepsize import PIDController as PIDController
-from ._integrate._stepsize import SaveAt as SaveAt
 from ._io import Restart as Restart
 from ._io import ResultsWriter as ResultsWriter
 from ._io import read_restart as read_restart

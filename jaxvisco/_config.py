@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from . import _export
 
-__version__ = "0.1.0"  # jaxvisco.__version__ (defined here so that inner layers can read it)
+__version__ = "0.2.0"  # jaxvisco.__version__ (defined here so that inner layers can read it)
 
 
 def require_x64() -> None:

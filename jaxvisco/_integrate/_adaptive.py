@@ -11,6 +11,7 @@ The capacity (`max_steps`) fixes the shapes of the compiled program: a run that 
 more accepted steps ends with ``status == "max_steps"`` and everything up to there.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -19,16 +20,48 @@ from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent
 from .._time_element._estimate import dense_state, scaled_error
 from .._time_element._step import make_context, predictor, step_outcome
+from ._differentiable import differentiate, empty_record, record_frame, record_substep
 from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
 from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
 
 
 @jit(export=True)
 def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save_every, save_gamma, ts_out,
-                 eq_tol, v0, use_v0):
+                 eq_tol, v0, use_v0, segment):
     """Integrate from `t0` to `t1` with error-controlled steps; at most `capacity`
     accepted steps. Frames: every `save_every`-th accepted step (and the last), or, if
-    `ts_out` is an array, at those times (dense output)."""
+    `ts_out` is an array, at those times (dense output). Returns the `Solution` and the
+    next step size the controller proposes. `segment`: sub-steps per checkpointed
+    segment of its derivative (`_differentiable`)."""
+    return _loop(scene, state0, v0, scheme=scheme, solver=solver, ctrl=ctrl, t0=t0, t1=t1, h0=h0, capacity=capacity,
+                 save_every=save_every, save_gamma=save_gamma, ts_out=ts_out, eq_tol=eq_tol, use_v0=use_v0,
+                 segment=segment)
+
+
+@eqx.filter_custom_jvp
+def _loop(scene, state0, v0, **kw):
+    """The adaptive loop; differentiable in the scene, the initial state and the
+    predictor's initial velocity along its accepted steps (their sizes are constants of
+    the derivative), through the replay of `_differentiable`."""
+    kw.pop("segment")
+    return _probe(scene, state0, v0, **kw)[:2]
+
+
+@_loop.def_jvp
+def _loop_jvp(primals, tangents, *, segment, **kw):
+    if kw["ts_out"] is not None:
+        raise ValueError("an adaptive run with SaveAt(ts) (dense output) cannot be differentiated yet: its frames are "
+                         "interpolated inside steps. Save at the accepted steps (SaveAt(every=n)) instead.")
+    sol, h, rec = _probe(*primals, **kw)
+    sol, t_sol = differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"],
+                               use_v0=kw["use_v0"], save_gamma=kw["save_gamma"], segment=segment)
+    return (sol, h), (t_sol, jnp.zeros_like(h))
+
+
+def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, save_every, save_gamma, ts_out, eq_tol,
+           use_v0):
+    """The loop itself: the `Solution`, the next step size and the `Record` of its
+    accepted steps."""
     order = scheme.k + 1
     diag0 = scene.diagnostics(state0)
     H0 = diag0["energy"]
@@ -75,6 +108,7 @@ def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save
         accept = ok & ((err <= 1.0) | at_min)
         i = c["i"]
         dissipated, work = c["dissipated"] + D, c["work"] + W
+        rec = record_substep(c["rec"], t, h_try, accept)
 
         # Next step size.
         grow = ctrl.accepted_factor(order, err, c["err1"], c["err2"])
@@ -87,13 +121,15 @@ def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save
             status = jnp.where(accept & at_equilibrium(scene, new, D, eq_tol, H0), EQUILIBRIUM, status)
         status = jnp.where(accept & (status == RUNNING) & last, DONE, status)
         status = jnp.where(accept & (status == RUNNING) & (i + 1 >= capacity), MAX_STEPS, status)
+        save = ((i + 1) % save_every == 0) | (status != RUNNING)
+        if not dense:
+            rec = record_frame(rec, c["n_saved"], accept & save)
 
         def on_accept(c):
             if dense:
                 frames, n_saved = dense_frames(c["frames"], c["n_saved"], ctx, r.U, t_next, c["dissipated"], D,
                                                c["work"], W)
             else:
-                save = ((i + 1) % save_every == 0) | (status != RUNNING)
                 frames = jax.lax.cond(
                     save, lambda f: write_frame(f, c["n_saved"], t_next, new, scene.diagnostics(new), dissipated, work),
                     lambda f: f, c["frames"])
@@ -118,7 +154,7 @@ def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save
         keys = ("i", "state", "t", "v", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2", "its",
                 "kits", "chord", "rej")
         out = jax.lax.cond(accept, on_accept, on_reject, {k: c[k] for k in keys})
-        out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1)
+        out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1, rec=rec)
         return out
 
     zf, zi = jnp.zeros(capacity), jnp.zeros(capacity, dtype=int)
@@ -129,8 +165,8 @@ def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save
                 v=jnp.where(use_v0, v0, scene.velocity(state0.p)), tan=empty_tangent(scheme, scene), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
                 status=jnp.asarray(RUNNING), err1=one, err2=one, its=zero, kits=zero, chord=zero, rej=zero,
-                attempts=zero)
+                attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float)))
     c = jax.lax.while_loop(cond, body, init)
     status = jnp.where(c["status"] == RUNNING, FAILED, c["status"])  # attempts exhausted
     return Solution(**frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["i"], status_code=status,
-                    integrator=scheme.describe(), end_velocity=c["v"], **c["steps"]), c["h"]
+                    integrator=scheme.describe(), end_velocity=c["v"], **c["steps"]), c["h"], c["rec"]

@@ -33,7 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._solver._implicit import solve_step_implicit
+from .._solver._implicit import materialize_zeros, solve_step_implicit
 from .._solver._tangent import empty_tangent
 from .._time_element._step import make_context, predictor, step_outcome
 from ._frames import frame_values
@@ -56,8 +56,8 @@ def record_size(n_slots):
     return n_slots + max(16, n_slots // 4)
 
 
-def empty_record(n_slots, n_frames, dtype):
-    size = record_size(n_slots)
+def empty_record(size, n_frames, dtype):
+    """A `Record` with room for `size` accepted sub-steps and `n_frames` frames."""
     return Record(t=jnp.zeros(size, dtype), h=jnp.ones(size, dtype), n=jnp.asarray(0),
                   frame_slot=jnp.full(n_frames, -1))
 
@@ -146,3 +146,24 @@ def check_replay(rec, failed, value):
     return eqx.error_if(value, failed,
                         "jaxvisco: a sub-step that converged in the run did not converge when it was replayed for "
                         "the derivative; tighten or loosen NewtonKrylov's tolerances, or use smaller steps.")
+
+
+def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_gamma, segment):
+    """The tangent of a loop's `Solution` `sol` (the rule of a `custom_jvp` around a time
+    loop that wrote `rec`): the replay's tangents at the frames and the end velocity;
+    `primals`/`tangents`: the scene, the initial state and the predictor's initial
+    velocity. Returns `sol` with the replay's run-time checks attached, and its tangent."""
+
+    def fn(scene, state0, v0):
+        return replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment)
+
+    out, d_out = eqx.filter_jvp(fn, primals, tangents)
+    d_first, d_ys, d_v = materialize_zeros(d_out[:3], out[:3])
+    # The checks sit on the primal output, which every derivative evaluates.
+    sol = check_replay(rec, out[3], sol)
+    frames = frame_tangents(rec, sol.n_saved, d_first, d_ys)
+    t_sol = jax.tree_util.tree_map(lambda _: None, sol)
+    names = [k for k in frames if getattr(sol, k) is not None]
+    t_sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names] + [s.end_velocity], t_sol,
+                        [frames[k] for k in names] + [d_v], is_leaf=lambda x: x is None)
+    return sol, t_sol

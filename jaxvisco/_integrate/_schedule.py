@@ -7,43 +7,131 @@ with step `h`, step `m` ends at ``s + m * h`` and the piece's last step ends at 
 `t_until` exactly.
 """
 
+import abc
 import math
 
+import equinox as eqx
 import numpy as np
 
 
-class StepTo:
+class AbstractStepSizeController(eqx.Module):
+    """How `simulate` chooses its steps: `ConstantStepSize`, `Schedule`, `StepTo` (steps
+    fixed before the run, expanded here on the host) or `PIDController` (error-controlled,
+    `_stepsize`)."""
+
+
+class AbstractFixedSteps(AbstractStepSizeController):
+    """Steps known before the run. A step whose Newton solve fails is halved, at most
+    `max_halvings` times (the smallest step tried is ``h / 2**max_halvings``; after
+    successes the sub-steps grow back dyadically to ``h``); a step that still fails ends
+    the run (``status == "failed"``)."""
+
+    max_halvings: eqx.AbstractVar[int]
+
+    @abc.abstractmethod
+    def step_times(self, t0, t1, dt0):
+        """``(hs, ts)``: the nominal step sizes (n,) and `t0` followed by every step's
+        exact end time (n + 1,)."""
+
+    def _check_halvings(self):
+        m = self.max_halvings
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 0 <= m <= 30:
+            raise ValueError(f"{type(self).__name__}: max_halvings must be an integer in [0, 30], got {m!r}.")
+
+
+class ConstantStepSize(AbstractFixedSteps):
+    """Steps of the size `dt0` (the default): from `t0` to `t1` in equal steps, the last
+    ending at `t1` exactly (a run whose length is not a multiple of `dt0` takes equal
+    steps just below it)."""
+
+    max_halvings: int = eqx.field(static=True, default=6)
+
+    def __check_init__(self):
+        self._check_halvings()
+
+    def step_times(self, t0, t1, dt0):
+        if dt0 is None or isinstance(dt0, bool) or np.ndim(dt0) != 0:
+            raise ValueError(f"dt0 must be a positive step size with ConstantStepSize, got {dt0!r}; for piecewise-"
+                             "constant steps pass stepsize_controller=Schedule([(t_until, dt), ...]), for given step "
+                             "times StepTo(ts).")
+        return step_times(t0, t1, dt0)
+
+
+class Schedule(AbstractFixedSteps):
+    """Piecewise-constant steps: `pieces` ``[(t_until, dt), ...]`` in absolute times,
+    e.g. ``[(20.0, 0.1), (40.0, 0.5)]`` (pieces that end at or before `t0` are skipped;
+    the last must reach `t1`, or have ``t_until = inf`` to continue its step to any
+    `t1`). A piece whose length is not a multiple of its step is split into equal steps
+    no longer than the given one. `dt0` must be None; `t1` defaults to the last
+    piece's `t_until`."""
+
+    pieces: tuple = eqx.field(static=True)
+    max_halvings: int = eqx.field(static=True, default=6)
+
+    def __init__(self, pieces, max_halvings=6):
+        self.pieces = tuple(_pieces(pieces))
+        self.max_halvings = max_halvings
+
+    def __check_init__(self):
+        self._check_halvings()
+
+    def step_times(self, t0, t1, dt0):
+        if dt0 is not None:
+            raise ValueError(f"dt0 = {dt0!r} conflicts with a Schedule, which gives the steps; pass dt0=None.")
+        if t1 is None and math.isfinite(self.pieces[-1][0]):
+            t1 = self.pieces[-1][0]
+        return step_times(t0, t1, list(self.pieces))
+
+
+class StepTo(AbstractFixedSteps):
     """Steps that end exactly at the times `ts` (as diffrax's ``StepTo``).
 
     `ts` holds the start time and then the end of every step, strictly increasing and
-    finite; step `i` runs from ``ts[i]`` to ``ts[i + 1]``. Give it as `dt` to
-    `simulate` (with ``t0 = ts[0]`` and ``t_end = ts[-1]``, or those left out).
-    ``StepTo.from_schedule(t0, t_end, dt)`` expands a constant step or a schedule, so
-    that a run can be advanced in pieces (``StepTo(steps.ts[i:j + 1])``) that repeat
-    the whole run's steps exactly.
+    finite; step `i` runs from ``ts[i]`` to ``ts[i + 1]``. Pass it as
+    ``stepsize_controller`` with ``dt0=None`` (``t0 = ts[0]`` and ``t1 = ts[-1]``, or
+    those left out). ``StepTo.from_schedule(t0, t1, dt)`` expands a constant step or a
+    list of ``(t_until, dt)`` pieces, so that a run can be advanced in pieces
+    (``StepTo(steps.ts[i:j + 1])``) that repeat the whole run's steps exactly.
     """
 
-    def __init__(self, ts):
+    ts: np.ndarray
+    max_halvings: int = eqx.field(static=True, default=6)
+
+    def __init__(self, ts, max_halvings=6):
         self.ts = checked_times(ts, "StepTo", 2, strict=True)
+        self.max_halvings = max_halvings
+
+    def __check_init__(self):
+        self._check_halvings()
 
     @classmethod
-    def from_schedule(cls, t0, t_end, dt):
-        """The exact step times of a constant step or a schedule (see `step_times`)."""
-        return cls(step_times(t0, t_end, dt)[1])
+    def from_schedule(cls, t0, t1, dt, max_halvings=6):
+        """The exact step times of a constant step or a list of ``(t_until, dt)`` pieces
+        (see `step_times`)."""
+        return cls(step_times(t0, t1, dt)[1], max_halvings)
+
+    def step_times(self, t0, t1, dt0):
+        if dt0 is not None:
+            raise ValueError(f"dt0 = {dt0!r} conflicts with StepTo, which gives the steps; pass dt0=None.")
+        return step_times(t0, t1, self)
 
     @property
     def t0(self):
         return float(self.ts[0])
 
     @property
-    def t_end(self):
+    def t1(self):
         return float(self.ts[-1])
+
+    @property
+    def t_end(self):
+        return self.t1
 
     def __len__(self):
         return self.ts.size - 1
 
     def __repr__(self):
-        return f"StepTo({len(self)} steps from t = {self.t0:.17g} to {self.t_end:.17g})"
+        return f"StepTo({len(self)} steps from t = {self.t0:.17g} to {self.t1:.17g})"
 
 
 def checked_times(ts, name, min_size, strict):
@@ -86,20 +174,20 @@ def _pieces(dt):
             raise ValueError(f"dt must be positive and finite, got dt = {h!r} in schedule piece {i}.")
         if math.isnan(until) or (math.isinf(until) and (until < 0 or i < len(pieces) - 1)):
             raise ValueError(f"schedule piece {i} has t_until = {until!r}; accepted: finite times, and inf for the "
-                             "last piece only (its step then continues to any t_end).")
+                             "last piece only (its step then continues to any t1).")
         if i and not until > pieces[i - 1][0]:
             raise ValueError(f"schedule times must increase: piece {i} ends at t_until = {until:g} after piece "
                              f"{i - 1} ended at {pieces[i - 1][0]:g}; got {list(dt)!r}.")
     return pieces
 
 
-def step_times(t0, t_end, dt):
-    """Nominal step sizes and exact end times of a run from `t0` to `t_end`.
+def step_times(t0, t1, dt):
+    """Nominal step sizes and exact end times of a run from `t0` to `t1`.
 
     `dt` is a positive number (a constant step), a list of ``(t_until, dt)`` pairs in
     absolute times (piecewise constant; pieces that end at or before `t0` are skipped,
-    the last piece must reach `t_end`, or have ``t_until = inf`` to continue its step to
-    any `t_end`), or a `StepTo`. A piece whose length is not a multiple of its step is
+    the last piece must reach `t1`, or have ``t_until = inf`` to continue its step to
+    any `t1`), or a `StepTo`. A piece whose length is not a multiple of its step is
     split into equal steps no longer than the given one.
 
     **Returns:** ``(hs, ts)``: `hs` (n,) the step sizes, `ts` (n + 1,) ``t0`` and the end
@@ -107,19 +195,19 @@ def step_times(t0, t_end, dt):
     """
     if isinstance(dt, StepTo):
         ts = dt.ts
-        for name, value, ref in (("t0", t0, ts[0]), ("t_end", t_end, ts[-1])):
+        for name, value, ref in (("t0", t0, ts[0]), ("t1", t1, ts[-1])):
             if value is not None and float(value) != float(ref):
                 raise ValueError(f"{name} = {value!r} disagrees with the StepTo times ({name} = {float(ref)!r}); give "
                                  f"{name}=None or the same time.")
         return np.diff(ts), np.array(ts)
     t0 = 0.0 if t0 is None else float(t0)
-    if t_end is None:
-        raise ValueError("t_end is required unless dt is a StepTo.")
-    t_end = float(t_end)
-    if not np.isfinite(t0) or not np.isfinite(t_end):
-        raise ValueError(f"t0 and t_end must be finite, got t0={t0!r}, t_end={t_end!r}.")
-    if t_end <= t0:
-        raise ValueError(f"t_end must be greater than t0 = {t0}, got t_end = {t_end}.")
+    if t1 is None:
+        raise ValueError("t1 is required unless the steps are a StepTo.")
+    t1 = float(t1)
+    if not np.isfinite(t0) or not np.isfinite(t1):
+        raise ValueError(f"t0 and t1 must be finite, got t0={t0!r}, t1={t1!r}.")
+    if t1 <= t0:
+        raise ValueError(f"t1 must be greater than t0 = {t0}, got t1 = {t1}.")
     pieces = _pieces(dt)
     if pieces is None:
         h = float(dt)
@@ -127,16 +215,16 @@ def step_times(t0, t_end, dt):
             raise ValueError(f"dt must be positive and finite, got dt = {h!r}.")
         pieces = [(math.inf, h)]
     last = pieces[-1][0]
-    if last < t_end and not math.isclose(last, t_end, rel_tol=1e-12, abs_tol=0.0):
-        raise ValueError(f"the dt schedule ends at t = {last:g}, before t_end = {t_end:g}: extend its last piece "
-                         f"(e.g. ({t_end:g}, {pieces[-1][1]:g})), or give float('inf') as its t_until to continue "
-                         "the last step to any t_end.")
+    if last < t1 and not math.isclose(last, t1, rel_tol=1e-12, abs_tol=0.0):
+        raise ValueError(f"the schedule ends at t = {last:g}, before t1 = {t1:g}: extend its last piece "
+                         f"(e.g. ({t1:g}, {pieces[-1][1]:g})), or give float('inf') as its t_until to continue "
+                         "the last step to any t1.")
     hs, ts = [], [t0]
     start = t0
     for until, h in pieces:
-        until = min(until, t_end)
-        if math.isclose(until, t_end, rel_tol=1e-12, abs_tol=0.0):
-            until = t_end  # a schedule that ends at t_end up to rounding ends there exactly
+        until = min(until, t1)
+        if math.isclose(until, t1, rel_tol=1e-12, abs_tol=0.0):
+            until = t1  # a schedule that ends at t1 up to rounding ends there exactly
         if until <= start:
             continue
         n = int(np.ceil((until - start) / h - 1e-9))
@@ -145,11 +233,11 @@ def step_times(t0, t_end, dt):
         ts.extend(start + h_piece * np.arange(1, n))
         ts.append(until)
         start = until
-        if start >= t_end:
+        if start >= t1:
             break
     return np.asarray(hs, dtype=float), np.asarray(ts, dtype=float)
 
 
-def step_sizes(t0, t_end, dt):
-    """Per-step sizes from `t0` to `t_end` (see `step_times`)."""
-    return step_times(t0, t_end, dt)[0]
+def step_sizes(t0, t1, dt):
+    """Per-step sizes from `t0` to `t1` (see `step_times`)."""
+    return step_times(t0, t1, dt)[0]

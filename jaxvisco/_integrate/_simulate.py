@@ -17,96 +17,149 @@ import numpy as np
 
 from .._config import _top_level, jit
 from .._scene import Scene, State
-from .._solver._implicit import materialize_zeros
 from .._solver._newton import NewtonKrylov, solve_step
 from .._solver._tangent import empty_tangent, position_pattern
 from .._time_element._step import make_context, predictor, step_outcome
 from .._time_element._time_element import AbstractTimeElement
 from .._validation import check_finite
 from ._adaptive import run_adaptive
+from ._adjoint import RecursiveCheckpointAdjoint
 from ._differentiable import (
-    check_replay,
+    differentiate,
     empty_record,
-    frame_tangents,
     record_frame,
     record_size,
     record_substep,
-    replay,
     segment_length,
 )
+from ._event import AbstractEvent
 from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
-from ._schedule import StepTo, step_times
+from ._legacy import translate
+from ._saveat import SaveAt
+from ._schedule import AbstractStepSizeController, ConstantStepSize
 from ._solution import DONE, EQUILIBRIUM, FAILED, RUNNING, Solution, SolverError
-from ._stepsize import PIDController, SaveAt
+from ._stepsize import PIDController
 
 
-def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, save_every=1,
-             solver: NewtonKrylov = NewtonKrylov(), save_gamma=False, stop_at_equilibrium=None,
-             max_halvings=6, initial_state: Optional[State] = None, max_steps=None,
-             throw=True, initial_velocity=None, differentiable=False, checkpoint_every=None,
-             stepsize_controller: Optional[PIDController] = None, saveat: Optional[SaveAt] = None) -> Solution:
-    """Integrate a scene in time.
+def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt0=None, *,
+             saveat: Optional[SaveAt] = None, stepsize_controller: Optional[AbstractStepSizeController] = None,
+             event: Optional[AbstractEvent] = None, adjoint: Optional[RecursiveCheckpointAdjoint] = None,
+             solver: Optional[NewtonKrylov] = None, max_steps=None, throw=True,
+             initial_state: Optional[State] = None, initial_velocity=None, **deprecated) -> Solution:
+    """Integrate a scene in time (shaped like `diffrax.diffeqsolve`).
 
     **Arguments:**
-    - `scene`, `integrator` (`cG(k)`, `eG(k)`, `Midpoint()`, `Newmark()`).
-    - `t_end`, `t0` (default 0); `dt`: a step, a schedule `[(t_until, dt), ...]` in
-      absolute times (piecewise constant, e.g. `[(20.0, 0.1), (40.0, 0.5)]`; it must
-      reach `t_end`, or end with `t_until = inf`), or `StepTo(ts)` (steps ending at the
-      times `ts`; then `t0` and `t_end` may be None). Step end times are exact: a
-      piece's steps end at `start + m * h`, never at an accumulated sum.
-    - `save_every`: keep every n-th step (the last step is always kept).
-    - `solver`: `NewtonKrylov(...)` settings.
-    - `save_gamma`: also keep the internal variable at the saved frames.
-    - `stop_at_equilibrium`: a tolerance `tol`; the run ends once the kinetic energy
-      relative to the rigid-body motion and the step's dissipated energy both fall
-      below `tol * H_0`.
-    - `max_halvings`: how often a failed step may be halved before the run stops: the
-      smallest step tried is `h / 2**max_halvings` (after successes the sub-steps grow
-      back dyadically to `h`).
-    - `initial_state`: start from this `State` instead of the scene's (restarts).
-    - `initial_velocity`: the predictor's velocity for the first step (default: the
+    - `scene`; `integrator`: `cG(k)`, `eG(k)`, `Midpoint()` or `Newmark()`.
+    - `t0` (default 0), `t1`: the run's start and end; `dt0`: the step size of
+      `ConstantStepSize` (default controller), the first step tried by a `PIDController`
+      (None: a hundredth of the run), None for `Schedule` and `StepTo` (which give the
+      steps; with `StepTo`, `t0` and `t1` may be left out). Step end times are exact: a
+      piece's steps end at ``start + m * h``, never at an accumulated sum.
+    - `saveat`: `SaveAt(every=n, gamma=...)` (default: every step, no internal
+      variable) or `SaveAt(ts)` (frames at times, with a `PIDController`).
+    - `stepsize_controller`: `ConstantStepSize(max_halvings=6)` (default),
+      `Schedule([(t_until, dt), ...])`, `StepTo(ts)` or `PIDController(rtol, atol, ...)`.
+      Fixed steps are halved after a failed Newton solve (at most `max_halvings` times;
+      after successes they grow back dyadically); a `PIDController` retries smaller
+      steps down to its `dtmin`.
+    - `event`: `Equilibrium(tol)` ends the run once the body is at rest.
+    - `adjoint`: `RecursiveCheckpointAdjoint(checkpoint_every=...)` (the default): how
+      `jax.grad`/`jax.jvp` differentiate the run (along its accepted steps, each step
+      implicitly; see `_differentiable`).
+    - `solver`: `NewtonKrylov(...)` (default `NewtonKrylov()`).
+    - `max_steps`: capacity of the compiled loop. Fixed steps: default the number of steps
+      rounded up to the next of 8, 12, 16, 24, 32, 48, ... (runs of 100 and 120 steps share
+      one program, in memory and in the persistent cache; called under a JAX
+      transformation, the number of steps). `PIDController`: accepted steps (default
+      4096); a run that needs more ends with ``status == "max_steps"``.
+    - `throw`: raise `SolverError` on failure (else return with ``status == "failed"``).
+    - `initial_state`: start from this `State` instead of the scene's (restarts);
+      `initial_velocity`: the predictor's velocity for the first step (default: the
       velocity of the initial momenta). A restart that passes the previous run's
       `Solution.end_velocity` repeats the uninterrupted run exactly.
-    - `max_steps`: capacity of the compiled loop (default: the number of steps rounded up
-      to the next of 8, 12, 16, 24, 32, 48, ...: runs of 100 and 120 steps share one
-      program, in memory and in the persistent cache, at most 1.5x the saved frames
-      until they are trimmed; called under a JAX transformation, the number of steps).
-      Runs with the same capacity share one compilation.
-    - `throw`: raise `SolverError` on failure (else return with `status == "failed"`).
-    - `differentiable`: kept for compatibility; with constant steps or a schedule every
-      run is differentiable and the flag changes nothing. `jax.grad`, `jax.jvp` and
-      `jax.vmap` of a plain call work, with respect to anything the scene holds (material
-      parameters, density, initial velocities and positions, loads), `initial_state`
-      and `initial_velocity`; step halving and `stop_at_equilibrium` stay on. The
-      derivative follows the run's accepted sub-steps (step sizes are constants of the
-      derivative), each step differentiated implicitly (one linear solve with the
-      converged tangent; Newton is never differentiated). See `_differentiable`.
-    - `checkpoint_every`: frames per checkpointed segment when the run is differentiated
-      in reverse mode (default: ceil(sqrt(sub-steps)) sub-steps; reverse-mode memory
-      grows like the square root of the number of steps).
 
-    - `stepsize_controller`: `PIDController(rtol, atol, ...)` for error-controlled steps
-      (see `_stepsize`, `_estimate`): `dt` is then the first step tried (a number, or
-      None: a hundredth of the run), `max_steps` the capacity of accepted steps (default
-      4096; frames: every `save_every`-th accepted step, so memory grows with it), and
-      a run that needs more ends with `status == "max_steps"` (`SolverError` with
-      `throw`). `max_halvings` does not apply (the controller retries smaller steps
-      down to its `dtmin`). With `differentiable=True` the run is first made without
-      derivatives to find its accepted steps, then differentiated along them (steps
-      are constants of the derivative, as in diffrax; not under `jax.jit`/`jax.vmap`).
-    - `saveat`: `SaveAt(ts)`: frames at the times `ts` (adaptive runs only), each from
-      the time polynomial of the step that covers it.
+    `jax.grad`, `jax.jvp` and `jax.vmap` of a plain call work, with respect to anything
+    the scene holds (material parameters, density, initial velocities and positions,
+    loads), `initial_state` and `initial_velocity`, with step halving and events on.
+
+    The keywords of jaxvisco 0.1 (`t_end`, `dt`, `save_every`, `save_gamma`,
+    `stop_at_equilibrium`, `max_halvings`, `differentiable`, `checkpoint_every`) are
+    accepted with a `DeprecationWarning` (see `_legacy`).
 
     **Returns:** a `Solution` (trimmed to the saved frames when called outside `jit`).
     """
+    if deprecated:
+        t1, dt0, saveat, stepsize_controller, event, adjoint = translate(
+            deprecated, t1, dt0, saveat, stepsize_controller, event, adjoint)
     if not isinstance(integrator, AbstractTimeElement):
         raise TypeError(f"integrator must be cG(k), eG(k), Midpoint() or Newmark(), got {integrator!r}.")
-    if isinstance(save_every, bool) or not isinstance(save_every, (int, np.integer)) or save_every < 1:
-        raise ValueError(f"save_every must be an integer >= 1, got {save_every!r}.")
-    if stop_at_equilibrium is not None and not (float(stop_at_equilibrium) > 0):
-        raise ValueError(f"stop_at_equilibrium must be a positive tolerance or None, got {stop_at_equilibrium!r}.")
-    if not isinstance(max_halvings, (int, np.integer)) or not 0 <= max_halvings <= 30:
-        raise ValueError(f"max_halvings must be an integer in [0, 30], got {max_halvings!r}.")
+    saveat = _option("saveat", saveat, SaveAt(), SaveAt, "SaveAt(every=n, gamma=...) or SaveAt(ts)")
+    ctrl = _option("stepsize_controller", stepsize_controller, ConstantStepSize(), AbstractStepSizeController,
+                   "ConstantStepSize(), Schedule([(t_until, dt), ...]), StepTo(ts) or PIDController(rtol, atol)")
+    event = _option("event", event, None, AbstractEvent, "Equilibrium(tol) or None")
+    adjoint = _option("adjoint", adjoint, RecursiveCheckpointAdjoint(), RecursiveCheckpointAdjoint,
+                      "RecursiveCheckpointAdjoint(checkpoint_every=...)")
+    solver = _option("solver", solver, NewtonKrylov(), NewtonKrylov, "NewtonKrylov(...)")
+    _check_order(t0, t1)
+    state0, v0, use_v0 = _initial(scene, initial_state, initial_velocity)
+    eq_tol = None if event is None else jnp.asarray(float(event.tol))
+    if isinstance(ctrl, PIDController):
+        return _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solver, max_steps, throw,
+                         state0, v0, use_v0)
+    if saveat.ts is not None:
+        raise ValueError("saveat=SaveAt(ts) (dense output) needs error-controlled steps "
+                         "(stepsize_controller=PIDController(...)); with fixed steps use SaveAt(every=n).")
+    hs, ts = ctrl.step_times(t0, t1, dt0)
+    t0, te = ts[0], ts[1:]
+    n_active = len(hs)
+    if max_steps is not None:
+        if int(max_steps) < n_active:
+            raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the run.")
+        hs, te = _padded(hs, te, int(max_steps))
+    elif _top_level():  # traced callers keep arrays of the run's length
+        hs, te = _padded(hs, te, capacity(n_active))
+    segment = _segment(scene, integrator, record_size(len(hs)), saveat, adjoint)
+    sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
+               jnp.asarray(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment)
+    return _finish(sol, integrator, ctrl.max_halvings, throw)
+
+
+def _segment(scene, integrator, n_record, saveat, adjoint):
+    """Sub-steps per checkpointed segment of the derivative's replay, for a record of
+    `n_record` sub-steps."""
+    segment = segment_length(n_record, saveat.every, adjoint.checkpoint_every)
+    if not _top_level():
+        # Under a transformation the run may be differentiated: a backward sweep needs
+        # the factorizations of a whole segment at once (one per sub-step for the
+        # derivative, a few more for Newton when the segment is re-run).
+        position_pattern(scene.disc.cells, integrator.k, scene.disc.n_nodes, scene.dim, scene.fixed).reserve(
+            64 + 8 * segment)
+    return segment
+
+
+def _option(name, value, default, cls, accepted):
+    """`value` (or `default` for None), checked to be a `cls`."""
+    if value is None:
+        return default
+    if not isinstance(value, cls):
+        raise TypeError(f"{name} must be {accepted}, got {value!r}.")
+    return value
+
+
+def _check_order(t0, t1):
+    """A clear error for ``t1 <= t0``, including calls in the old order ``(t_end, dt)``."""
+    try:
+        a, b = float(t0), float(t1)
+    except (TypeError, ValueError):
+        return  # None or a non-number: the step controller reports it
+    if not b > a:
+        raise ValueError(f"t1 = {t1!r} must be greater than t0 = {t0!r}. simulate's arguments are (scene, integrator, "
+                         "t0, t1, dt0), as in diffrax.diffeqsolve; in jaxvisco 0.1 the third and fourth were (t_end, "
+                         "dt): write simulate(scene, integrator, t1=..., dt0=...).")
+
+
+def _initial(scene, initial_state, initial_velocity):
+    """The initial state and the predictor's initial velocity (with a flag: given)."""
     state0 = scene.initial_state() if initial_state is None else initial_state
     if initial_state is not None:
         ref = dict(x=scene.x0, p=scene.x0, gamma=scene.gamma0)
@@ -118,99 +171,44 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t_end, dt, t0=None, 
             if a is not None:
                 check_finite(f"initial_state.{name}", a)
     if initial_velocity is None:
-        v0, use_v0 = jnp.zeros_like(state0.p), jnp.asarray(False)
-    else:
-        v0, use_v0 = jnp.asarray(initial_velocity, dtype=state0.p.dtype), jnp.asarray(True)
-        if v0.shape != state0.p.shape:
-            raise ValueError(f"initial_velocity must have shape {state0.p.shape}, got {v0.shape}.")
-        check_finite("initial_velocity", v0)
-    if saveat is not None and not isinstance(saveat, SaveAt):
-        raise TypeError(f"saveat must be a SaveAt(ts=...), got {saveat!r}.")
-    if stepsize_controller is not None:
-        return _adaptive(scene, integrator, stepsize_controller, t_end, dt, t0, save_every, solver, save_gamma,
-                         stop_at_equilibrium, state0, max_steps, throw, v0, use_v0, differentiable, checkpoint_every,
-                         saveat)
-    if saveat is not None:
-        raise ValueError("saveat=SaveAt(ts=...) (dense output) needs error-controlled steps "
-                         "(stepsize_controller=PIDController(...)); with constant steps use save_every.")
-    hs, ts = step_times(t0, t_end, dt)
-    t0, te = ts[0], ts[1:]
-    n_active = len(hs)
-    if max_steps is not None:
-        if int(max_steps) < n_active:
-            raise ValueError(f"max_steps = {max_steps} is less than the {n_active} steps of the schedule.")
-        hs, te = _padded(hs, te, int(max_steps))
-    elif _top_level():  # traced callers keep arrays of the run's length
-        hs, te = _padded(hs, te, capacity(n_active))
-    if checkpoint_every is not None and (isinstance(checkpoint_every, bool) or int(checkpoint_every) < 1):
-        raise ValueError(f"checkpoint_every must be a positive number of frames or None, got {checkpoint_every!r}.")
-    segment = segment_length(record_size(len(hs)), int(save_every), checkpoint_every)
-    if not _top_level():
-        # Under a transformation the run may be differentiated: a backward sweep needs
-        # the factorizations of a whole segment at once (one per sub-step for the
-        # derivative, a few more for Newton when the segment is re-run).
-        position_pattern(scene.disc.cells, integrator.k, scene.disc.n_nodes, scene.dim, scene.fixed).reserve(
-            64 + 8 * segment)
-    sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
-               jnp.asarray(n_active), int(save_every), bool(save_gamma),
-               None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)),
-               int(max_halvings), v0, use_v0, segment)
-    return _finish(sol, integrator, int(max_halvings), throw)
+        return state0, jnp.zeros_like(state0.p), jnp.asarray(False)
+    v0 = jnp.asarray(initial_velocity, dtype=state0.p.dtype)
+    if v0.shape != state0.p.shape:
+        raise ValueError(f"initial_velocity must have shape {state0.p.shape}, got {v0.shape}.")
+    check_finite("initial_velocity", v0)
+    return state0, v0, jnp.asarray(True)
 
 
-def _adaptive(scene, integrator, ctrl, t_end, dt, t0, save_every, solver, save_gamma, stop_at_equilibrium, state0,
-              max_steps, throw, v0, use_v0, differentiable, checkpoint_every, saveat):
+def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solver, max_steps, throw, state0, v0,
+              use_v0):
     """`simulate` with error-controlled steps (`run_adaptive`)."""
-    if not isinstance(ctrl, PIDController):
-        raise TypeError(f"stepsize_controller must be a PIDController(rtol=..., atol=...), got {ctrl!r}.")
     t0 = 0.0 if t0 is None else float(t0)
-    if t_end is None or not (np.isfinite(float(t_end)) and np.isfinite(t0) and float(t_end) > t0):
-        raise ValueError(f"an adaptive run needs finite t0 < t_end, got t0 = {t0!r}, t_end = {t_end!r}.")
-    t_end = float(t_end)
-    if dt is None:
-        h0 = 0.01 * (t_end - t0)
-    elif isinstance(dt, (int, float, np.integer, np.floating)) and not isinstance(dt, bool) and 0 < float(dt) < np.inf:
-        h0 = float(dt)
+    if t1 is None or not (np.isfinite(float(t1)) and np.isfinite(t0) and float(t1) > t0):
+        raise ValueError(f"an adaptive run needs finite t0 < t1, got t0 = {t0!r}, t1 = {t1!r}.")
+    t1 = float(t1)
+    if dt0 is None:
+        h0 = 0.01 * (t1 - t0)
+    elif isinstance(dt0, (int, float, np.integer, np.floating)) and not isinstance(dt0, bool) and 0 < float(dt0) < np.inf:
+        h0 = float(dt0)
     else:
-        raise ValueError(f"with a stepsize_controller, dt is the first step to try (a positive number) or None "
-                         f"(a hundredth of the run), got {dt!r}; schedules and StepTo fix the steps themselves.")
+        raise ValueError(f"with a PIDController, dt0 is the first step to try (a positive number) or None "
+                         f"(a hundredth of the run), got {dt0!r}; Schedule and StepTo fix the steps themselves.")
     cap = 4096 if max_steps is None else int(max_steps)
     if cap < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps!r}.")
-    if saveat is not None:
-        saveat.check(t0, t_end)
-    if saveat is not None and differentiable:
-        raise ValueError("saveat=SaveAt(ts=...) is not available with differentiable=True; the differentiable "
-                         "run saves at its steps (save_every).")
-    if differentiable:
-        # Step sizes are constants of the derivative (as in diffrax): find the accepted
-        # steps without derivatives, then differentiate the run along them.
-        no_grad = lambda tree: jax.tree_util.tree_map(  # noqa: E731
-            lambda a: jax.lax.stop_gradient(a) if eqx.is_array(a) else a, tree)
-        probe = _adaptive(no_grad(scene), integrator, ctrl, t_end, dt, t0, save_every, solver, False,
-                          None, no_grad(state0), max_steps, throw, no_grad(v0), use_v0, False, None, None)
-        if isinstance(probe.step_t, jax.core.Tracer):
-            raise ValueError("differentiable=True with a stepsize_controller needs the accepted steps as numbers: "
-                             "call it outside jax.jit/jax.vmap (jax.grad and jax.jvp are fine), or run the adaptive "
-                             "run first and differentiate simulate(..., dt=StepTo(...)) along its steps.")
-        if probe.status != "done":
-            return probe
-        ts = np.concatenate([[t0], np.asarray(probe.step_t)])
-        return simulate(scene, integrator, None, StepTo(ts), save_every=save_every, solver=solver,
-                        save_gamma=save_gamma, initial_state=state0, throw=throw,
-                        initial_velocity=jnp.where(use_v0, v0, scene.velocity(state0.p)),
-                        checkpoint_every=checkpoint_every)
-    sol, _ = run_adaptive(scene, integrator, solver, ctrl, state0, jnp.asarray(t0), jnp.asarray(t_end),
-                          jnp.asarray(h0), cap, int(save_every), bool(save_gamma),
-                          None if saveat is None else jnp.asarray(saveat.ts),
-                          None if stop_at_equilibrium is None else jnp.asarray(float(stop_at_equilibrium)), v0, use_v0)
+    saveat.check(t0, t1)
+    sol, _ = run_adaptive(scene, integrator, solver, ctrl, state0, jnp.asarray(t0), jnp.asarray(t1),
+                          jnp.asarray(h0), cap, saveat.every, saveat.gamma,
+                          None if saveat.ts is None else jnp.asarray(saveat.ts),
+                          None if event is None else jnp.asarray(float(event.tol)), v0, use_v0,
+                          _segment(scene, integrator, cap, saveat, adjoint))
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()
     if sol.status == "max_steps" and throw:
         t = float(sol.step_t[-1]) if len(sol.step_t) else t0
         raise SolverError(f"{integrator.name}: the adaptive run reached max_steps = {cap} accepted steps at t = {t:.6g} "
-                          f"before t_end = {t_end:g}; raise max_steps or loosen the tolerances (the state there is "
+                          f"before t1 = {t1:g}; raise max_steps or loosen the tolerances (the state there is "
                           "attached).", t, sol.state(-1), sol)
     if sol.status == "failed" and throw:
         t = float(sol.step_t[-1]) if len(sol.step_t) else t0
@@ -270,22 +268,9 @@ def _loop(scene, state0, v0, **kw):
 
 @_loop.def_jvp
 def _loop_jvp(primals, tangents, *, segment, **kw):
-    scene, state0, v0 = primals
-    sol, rec = _probe(scene, state0, v0, **kw)
-
-    def fn(scene, state0, v0):
-        return replay(kw["scheme"], kw["solver"], scene, state0, v0, kw["use_v0"], rec, kw["save_gamma"], segment)
-
-    out, d_out = eqx.filter_jvp(fn, primals, tangents)
-    d_first, d_ys, d_v = materialize_zeros(d_out[:3], out[:3])
-    # The checks sit on the primal output, which every derivative evaluates.
-    sol = check_replay(rec, out[3], sol)
-    frames = frame_tangents(rec, sol.n_saved, d_first, d_ys)
-    t_sol = jax.tree_util.tree_map(lambda _: None, sol)
-    names = [k for k in frames if getattr(sol, k) is not None]
-    t_sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names] + [s.end_velocity], t_sol,
-                        [frames[k] for k in names] + [d_v], is_leaf=lambda x: x is None)
-    return sol, t_sol
+    sol, rec = _probe(*primals, **kw)
+    return differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"], use_v0=kw["use_v0"],
+                         save_gamma=kw["save_gamma"], segment=segment)
 
 
 def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings,
@@ -367,7 +352,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
                  residual=zeros_f, rejections=zeros_i)
     v_init = jnp.where(use_v0, v0, scene.velocity(state0.p))
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene),
-                frames=frames, steps=steps, rec=empty_record(hs.shape[0], n_frames, t0.dtype),
+                frames=frames, steps=steps, rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype),
                 n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
                 work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))
     c = jax.lax.while_loop(cond, body, init)

@@ -1,4 +1,4 @@
-"""How the step is chosen: `PIDController` (error-controlled steps) and `SaveAt` (output times).
+"""Error-controlled steps: `PIDController`.
 
 The controller follows diffrax's `PIDController` (same names and meaning of `rtol`,
 `atol`, `pcoeff`, `icoeff`, `dcoeff`, `dtmin`, `dtmax`, `factormin`, `factormax`,
@@ -13,11 +13,10 @@ compiled program.
 
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._schedule import checked_times
+from ._schedule import AbstractStepSizeController
 
 
 def _positive(name, value, allow_zero=False, allow_inf=False):
@@ -32,7 +31,7 @@ def _positive(name, value, allow_zero=False, allow_inf=False):
     return v
 
 
-class PIDController(eqx.Module):
+class PIDController(AbstractStepSizeController):
     """Error-controlled step sizes for `simulate(..., stepsize_controller=...)`.
 
     A step is accepted where its error estimate, in units of ``atol + rtol * scale``,
@@ -115,24 +114,3 @@ class PIDController(eqx.Module):
 
     def __repr__(self):
         return f"PIDController(rtol={float(self.rtol):g}, atol={float(self.atol):g})"
-
-
-class SaveAt:
-    """Which frames a run keeps: `ts`, times within ``[t0, t_end]`` (non-decreasing).
-
-    With an adaptive step (`PIDController`) a frame at a time inside a step is the
-    step's own time polynomial there (dense output: positions, momenta and internal
-    variable; no step is shortened to hit it). `dissipated` and `external_work` are
-    exact at step ends and linear in time within a step.
-    """
-
-    def __init__(self, ts):
-        self.ts = checked_times(ts, "SaveAt", 1, strict=False)
-
-    def check(self, t0, t_end):
-        if self.ts[0] < t0 or self.ts[-1] > t_end:
-            raise ValueError(f"SaveAt: ts must lie within [t0, t_end] = [{t0:g}, {t_end:g}], got "
-                             f"[{self.ts[0]:g}, {self.ts[-1]:g}].")
-
-    def __repr__(self):
-        return f"SaveAt({self.ts.size} times from {self.ts[0]:g} to {self.ts[-1]:g})"

@@ -1,0 +1,52 @@
+"""What a run keeps: `SaveAt`."""
+
+import equinox as eqx
+import numpy as np
+
+from ._schedule import checked_times
+
+
+class SaveAt(eqx.Module):
+    """Which frames `simulate` keeps (as diffrax's ``SaveAt``).
+
+    **Arguments:**
+    - `ts`: times within ``[t0, t1]`` (non-decreasing), for error-controlled steps
+      (`PIDController`) only: a frame at a time inside a step is the step's own time
+      polynomial there (dense output: positions, momenta and internal variable; no step
+      is shortened to hit it); `dissipated` and `external_work` are exact at step ends
+      and linear in time within a step.
+    - `every`: without `ts`, keep every `every`-th step (default 1; the initial state and
+      the last step are always kept). With fixed steps a step is a nominal step (its
+      halvings are inside it); with a `PIDController`, an accepted step.
+    - `gamma`: also keep the internal variable at the frames (default False: it is the
+      largest field, and the run's end state needs it only for restarts).
+
+    The run's last predictor velocity is always returned (`Solution.end_velocity`): a
+    restart that passes it as `initial_velocity` repeats the uninterrupted run.
+    """
+
+    ts: np.ndarray = None
+    every: int = eqx.field(static=True, default=1)
+    gamma: bool = eqx.field(static=True, default=False)
+
+    def __init__(self, ts=None, *, every=1, gamma=False):
+        if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+            raise ValueError(f"SaveAt: every must be an integer >= 1, got {every!r}.")
+        if not isinstance(gamma, (bool, np.bool_)):
+            raise ValueError(f"SaveAt: gamma must be True or False, got {gamma!r}.")
+        if ts is not None and every != 1:
+            raise ValueError(f"SaveAt: give ts or every, not both (got every = {every!r} with ts).")
+        self.ts = None if ts is None else checked_times(ts, "SaveAt", 1, strict=False)
+        self.every = int(every)
+        self.gamma = bool(gamma)
+
+    def check(self, t0, t1):
+        if self.ts is not None and (self.ts[0] < t0 or self.ts[-1] > t1):
+            raise ValueError(f"SaveAt: ts must lie within [t0, t1] = [{t0:g}, {t1:g}], got "
+                             f"[{self.ts[0]:g}, {self.ts[-1]:g}].")
+
+    def __repr__(self):
+        gamma = ", gamma=True" if self.gamma else ""
+        if self.ts is None:
+            return f"SaveAt(every={self.every}{gamma})"
+        return f"SaveAt({self.ts.size} times from {self.ts[0]:g} to {self.ts[-1]:g}{gamma})"
