@@ -51,7 +51,7 @@ def effectivity(scene, scheme, state, t, h, substeps=16):
     knots = np.concatenate([[0.0], sigma])
     ts = np.concatenate([t + h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(substeps) / substeps)
                          for i in range(len(sigma))] + [[t + h * sigma[-1]]])
-    ref = jv.simulate(scene, jv.cG(3), None, jv.StepTo(ts), initial_state=state, save_gamma=True,
+    ref = jv.simulate(scene, jv.cG(3), stepsize_controller=jv.StepTo(ts), initial_state=state, saveat=jv.SaveAt(gamma=True),
                       initial_velocity=scene.velocity(state.p))
     idx = substeps * np.arange(1, len(sigma) + 1)
     true_x = np.asarray(states.x) - np.asarray(ref.x)[idx]
@@ -73,7 +73,7 @@ def main():
     rows = []
     for k in (1, 2, 3):
         for rtol in (1e-3, 1e-5):
-            sol = jv.simulate(scene, jv.eG(k), 10.0, None, save_gamma=True,
+            sol = jv.simulate(scene, jv.eG(k), 0.0, 10.0, None, saveat=jv.SaveAt(gamma=True),
                               stepsize_controller=jv.PIDController(rtol=rtol, atol=rtol))
             n = int(sol.n_steps)
             picks = np.unique(np.linspace(0, n - 1, 4 if args.quick else 10).astype(int))

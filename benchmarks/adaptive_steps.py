@@ -40,7 +40,7 @@ def adaptive_run(scene, k, tol, T, cap, repeats):
     ctrl = jv.PIDController(rtol=tol, atol=tol)
 
     def go():
-        return jv.simulate(scene, jv.eG(k), T, None, stepsize_controller=ctrl, save_every=1, max_steps=cap,
+        return jv.simulate(scene, jv.eG(k), 0.0, T, None, stepsize_controller=ctrl, saveat=jv.SaveAt(every=1), max_steps=cap,
                            throw=False)
 
     sol, first, wall, times = timed(go, repeats=repeats)
@@ -49,7 +49,7 @@ def adaptive_run(scene, k, tol, T, cap, repeats):
 
 def constant_run(scene, k, n, T, cap, repeats):
     def go():
-        return jv.simulate(scene, jv.eG(k), T, T / n, save_every=cap, max_steps=cap, throw=False)
+        return jv.simulate(scene, jv.eG(k), 0.0, T, T / n, saveat=jv.SaveAt(every=cap), max_steps=cap, throw=False)
 
     return timed(go, repeats=repeats)
 
@@ -128,13 +128,13 @@ def main(argv=None):
 
     # The reference first (its program is eG(3)'s with another capacity).
     t0 = time.perf_counter()
-    ref = jv.simulate(scene, jv.eG(3), T, None, stepsize_controller=jv.PIDController(rtol=ref_tol, atol=ref_tol),
-                      save_every=ref_cap, max_steps=ref_cap, throw=False)
+    ref = jv.simulate(scene, jv.eG(3), 0.0, T, None, stepsize_controller=jv.PIDController(rtol=ref_tol, atol=ref_tol),
+                      saveat=jv.SaveAt(every=ref_cap), max_steps=ref_cap, throw=False)
     ref_wall = time.perf_counter() - t0
     x_ref = np.asarray(ref.x[-1])
-    chk = jv.simulate(scene, jv.eG(3), T, None,
+    chk = jv.simulate(scene, jv.eG(3), 0.0, T, None,
                       stepsize_controller=jv.PIDController(rtol=check_tol, atol=check_tol),
-                      save_every=ref_cap, max_steps=ref_cap, throw=False)
+                      saveat=jv.SaveAt(every=ref_cap), max_steps=ref_cap, throw=False)
     data["reference"] = dict(scheme="eG(3) adaptive", rtol=ref_tol, status=ref.status, steps=int(ref.n_steps),
                              rejections=int(np.sum(np.asarray(ref.rejections))), wall_incl_compile_s=ref_wall,
                              H_end=float(ref.energy[-1]), D_end=float(ref.dissipated[-1]),

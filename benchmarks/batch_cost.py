@@ -39,7 +39,7 @@ def main(argv=None):
     def run(eta_dev, vscale):
         sc = jv.with_parameters(scene, {"eta_dev": eta_dev})
         sc = eqx.tree_at(lambda s: s.v0, sc, vscale * sc.v0)
-        s = jv.simulate(sc, jv.eG(1), t_end=t_end, dt=h)
+        s = jv.simulate(sc, jv.eG(1), t1=t_end, dt0=h)
         return s.x[-1], jnp.sum(s.newton_iterations)
 
     single = jax.jit(run)

@@ -41,7 +41,7 @@ def median(f, reps=3):
 if mode == "grad":
     def loss(z):
         sc = jv.with_parameters(scene, {"eta_dev": jnp.exp(z[0]), "eta_vol": jnp.exp(z[1])})
-        s = jv.simulate(sc, jv.eG(1), t_end=n * h, dt=h, checkpoint_every=ck)
+        s = jv.simulate(sc, jv.eG(1), t1=n * h, dt0=h, adjoint=jv.RecursiveCheckpointAdjoint(checkpoint_every=ck))
         return s.dissipated[-1] + s.free_energy[-1]
     z = jnp.log(jnp.array([5e4, 1e4]))
     fwd, grad = eqx.filter_jit(loss), eqx.filter_jit(jax.grad(loss))
@@ -53,7 +53,7 @@ if mode == "grad":
 else:
     def run(eta):
         sc = jv.with_parameters(scene, {"eta_dev": eta})
-        return jv.simulate(sc, jv.eG(1), t_end=n * h, dt=h).energy
+        return jv.simulate(sc, jv.eG(1), t1=n * h, dt0=h).energy
     etas = jnp.linspace(2e4, 2e5, 8)
     single, batch = jax.jit(run), jax.jit(jax.vmap(run))
     jax.block_until_ready(single(etas[0])); jax.block_until_ready(batch(etas))

@@ -68,7 +68,7 @@ def main(argv=None):
             raise SystemExit(f"unknown scheme {name!r}; accepted: {sorted(known)}")
         scheme = known[name]
         def go():
-            return jv.simulate(scene, scheme, t_end=n * h, dt=h, save_every=n)
+            return jv.simulate(scene, scheme, t1=n * h, dt0=h, saveat=jv.SaveAt(every=n))
 
         go()  # compile
         TIMES.clear()

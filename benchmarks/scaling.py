@@ -13,7 +13,6 @@ benchmarks/results/scaling.json and scaling.png.
 
 import argparse
 import json
-import math
 import subprocess
 import sys
 import time
@@ -32,7 +31,7 @@ def worker(element, refinement, steps, h):
     dofs = int(scene.mesh.n_nodes * 3)
 
     def go():
-        return jv.simulate(scene, jv.eG(1), t_end=steps * h, dt=h, save_every=steps)
+        return jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, saveat=jv.SaveAt(every=steps))
 
     t0 = time.perf_counter()
     sol = go()

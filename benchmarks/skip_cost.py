@@ -32,7 +32,7 @@ def main(argv=None):
         scene = jv.scenes.lshape(2, r, viscous=viscous)
         for save_every in (1, n):
             def go():
-                return jv.simulate(scene, jv.eG(1), t_end=n * h, dt=h, save_every=save_every)
+                return jv.simulate(scene, jv.eG(1), t1=n * h, dt0=h, saveat=jv.SaveAt(every=save_every))
 
             sol, first, wall, times = timed(go, repeats=3)
             row = dict(material="viscous" if viscous else "elastic (no internal variable)",

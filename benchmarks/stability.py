@@ -41,7 +41,7 @@ def schemes():
 
 def one_run(scene, scheme, h, T, cap, max_halvings=6):
     t0 = time.perf_counter()
-    sol = jv.simulate(scene, scheme, t_end=T, dt=h, max_steps=cap, throw=False, stop_at_equilibrium=EQ_TOL,
+    sol = jv.simulate(scene, scheme, t1=T, dt0=h, max_steps=cap, throw=False, event=jv.Equilibrium(EQ_TOL),
                       max_halvings=max_halvings)
     wall = time.perf_counter() - t0
     H = np.asarray(sol.energy)

@@ -36,13 +36,13 @@ if {cache!r}:
 t1 = time.perf_counter()
 scene = jv.scenes.lshape(dim=2, refinement=1)
 t2 = time.perf_counter()
-sol = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.1)
+sol = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.1)
 t3 = time.perf_counter()
-sol = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.1)
+sol = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.1)
 t4 = time.perf_counter()
-sol = jv.simulate(scene, jv.eG(1), t_end=1.1, dt=0.1)  # 11 steps: the same capacity (12) as 10
+sol = jv.simulate(scene, jv.eG(1), t1=1.1, dt0=0.1)  # 11 steps: the same capacity (12) as 10
 t5 = time.perf_counter()
-sol = jv.simulate(scene, jv.eG(1), t_end=1.1, dt=0.1, max_steps=11)  # exact capacity: compiles (as before)
+sol = jv.simulate(scene, jv.eG(1), t1=1.1, dt0=0.1, max_steps=11)  # exact capacity: compiles (as before)
 t6 = time.perf_counter()
 print("RESULT " + json.dumps(dict(import_s=t1 - t0, scene_s=t2 - t1, first_call_s=t3 - t2, second_call_s=t4 - t3,
                                   other_t_end_s=t5 - t4, exact_capacity_s=t6 - t5, status=sol.status)))

@@ -63,7 +63,7 @@ def run_jaxvisco(scene, name, scheme, hs, T, ref, cap, budget_s, repeats):
         n = int(round(T / h))
 
         def go():
-            return jv.simulate(scene, scheme, t_end=T, dt=h, save_every=cap, max_steps=cap, throw=False)
+            return jv.simulate(scene, scheme, t1=T, dt0=h, saveat=jv.SaveAt(every=cap), max_steps=cap, throw=False)
 
         sol, first, wall, times = timed(go, repeats=repeats, budget_s=budget_s / 4)
         ok = sol.status == "done"
@@ -100,7 +100,7 @@ def run_adaptive(scene, name, scheme, tols, T, ref, cap, budget_s, repeats):
         ctrl = jv.PIDController(rtol=tol, atol=tol)
 
         def go():
-            return jv.simulate(scene, scheme, T, None, stepsize_controller=ctrl, save_every=cap, max_steps=cap,
+            return jv.simulate(scene, scheme, 0.0, T, None, stepsize_controller=ctrl, saveat=jv.SaveAt(every=cap), max_steps=cap,
                                throw=False)
 
         sol, first, wall, times = timed(go, repeats=repeats, budget_s=budget_s / 4)
@@ -520,7 +520,7 @@ def main(argv=None):
             print(f"  reference {ref_scheme} h={ref_h} from {a.reuse_reference}.json: H(T)={ref['H']:.12g}", flush=True)
         elif a.reference == "eG":
             t0 = time.perf_counter()
-            sol = jv.simulate(scene, all_schemes()[ref_scheme], t_end=T, dt=ref_h, save_every=cap_ref,
+            sol = jv.simulate(scene, all_schemes()[ref_scheme], t1=T, dt0=ref_h, saveat=jv.SaveAt(every=cap_ref),
                               max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
             ref_wall = time.perf_counter() - t0
             ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]), D=float(sol.dissipated[-1]))
@@ -549,7 +549,7 @@ def main(argv=None):
                   f"{rr.t.size - 1} steps, {radau_wall:.1f}s", flush=True)
         elif a.check == "eG-2h":
             t0 = time.perf_counter()
-            s2 = jv.simulate(scene, all_schemes()[ref_scheme], t_end=T, dt=2 * ref_h, save_every=cap_ref,
+            s2 = jv.simulate(scene, all_schemes()[ref_scheme], t1=T, dt0=2 * ref_h, saveat=jv.SaveAt(every=cap_ref),
                              max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
             w2 = time.perf_counter() - t0
             check = dict(check=f"{ref_scheme} at h = {2 * ref_h:g} (the difference bounds the error of that run; "

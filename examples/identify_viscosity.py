@@ -38,7 +38,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     T, h = (2.0, 0.2) if args.quick else (4.0, 0.2)
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    run = dict(t_end=T, dt=h, solver=jv.NewtonKrylov(rtol=1e-11))
+    run = dict(t1=T, dt0=h, solver=jv.NewtonKrylov(rtol=1e-11))
     truth = jv.simulate(jv.with_parameters(scene, TRUE), jv.eG(1), **run)
     clean = np.asarray(observe(truth))
     rng = np.random.default_rng(0)

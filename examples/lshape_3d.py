@@ -25,7 +25,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     scene = jv.scenes.lshape(dim=3, refinement=1)
     t_end = 0.3 if args.quick else 5.0
-    sol = jv.simulate(scene, jv.eG(1), t_end=t_end, dt=0.1)
+    sol = jv.simulate(scene, jv.eG(1), t1=t_end, dt0=0.1)
     H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
     print(f"3D L-shape: {scene.mesh.n_cells} cells, {scene.mesh.n_nodes} nodes, {len(sol.step_t)} steps")
     for t, h, d in zip(np.asarray(sol.t), H, D):

@@ -34,7 +34,7 @@ def main(argv=None):
     X = jnp.asarray(mesh.points)
     v0 = jnp.asarray([6.0, 0.0]) + 0.6 * jnp.stack([-X[:, 1], X[:, 0]], axis=-1)  # v_T + omega e_z x X
     scene = jv.Scene(mesh, material, density=8.93, velocities=v0)
-    sol = jv.simulate(scene, jv.eG(1), t_end=0.1 * args.steps, dt=0.1)
+    sol = jv.simulate(scene, jv.eG(1), t1=0.1 * args.steps, dt0=0.1)
     print(f"{args.mesh}: {mesh.n_cells} {mesh.cell_type} cells, {mesh.n_nodes} nodes")
     for t, H in zip(np.asarray(sol.t), np.asarray(sol.energy)):
         print(f"t = {t:5.2f}  H = {H:.10g}")

@@ -22,20 +22,20 @@ _NEW = dict(t_end="t1=", dt="dt0= (a number), stepsize_controller=Schedule([...]
             checkpoint_every="adjoint=RecursiveCheckpointAdjoint(checkpoint_every=n)")
 
 
-def translate(old, t1, dt0, saveat, stepsize_controller, event, adjoint):
-    """The new arguments from the old keywords in `old` (a dict); raises on unknown
-    keywords and on an old keyword given together with its replacement."""
-    unknown = sorted(set(old) - set(_NEW))
+def translate(old, t1, dt0, saveat, stepsize_controller, event, adjoint, where="simulate", accepted=tuple(_NEW)):
+    """The new arguments from the old keywords in `old` (a dict; `accepted`: the old
+    names `where` took); raises on unknown keywords and on an old keyword given together
+    with its replacement."""
+    unknown = sorted(set(old) - set(accepted))
     if unknown:
-        raise TypeError(f"simulate() got unexpected keyword argument(s) {unknown}; accepted: scene, integrator, t0, "
-                        "t1, dt0, saveat, stepsize_controller, event, adjoint, solver, max_steps, throw, "
-                        "initial_state, initial_velocity.")
-    warnings.warn("simulate(): " + "; ".join(f"{k}= is deprecated, use {_NEW[k]}" for k in old) + ".",
+        raise TypeError(f"{where}() got unexpected keyword argument(s) {unknown}; see help(jaxvisco.{where}) for "
+                        "the accepted ones.")
+    warnings.warn(f"{where}(): " + "; ".join(f"{k}= is deprecated, use {_NEW[k]}" for k in old) + ".",
                   DeprecationWarning, stacklevel=3)
 
     def conflict(name, new_name, new_value):
         if name in old and new_value is not None:
-            raise TypeError(f"simulate(): give {new_name} or the deprecated {name}, not both.")
+            raise TypeError(f"{where}(): give {new_name} or the deprecated {name}, not both.")
 
     conflict("t_end", "t1", t1)
     t1 = old.get("t_end", t1)

@@ -37,7 +37,7 @@ class Solution(eqx.Module):
     iterations), `krylov_iterations`, `chord_iterations` (iterations on the stored
     factorization, `NewtonKrylov(chord=...)`), `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
     one of "done", "equilibrium", "failed", "max_steps" (an adaptive run that used all
-    its `max_steps` accepted steps before `t_end`).
+    its `max_steps` accepted steps before `t1`).
     """
 
     t: jax.Array

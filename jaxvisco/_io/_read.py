@@ -129,7 +129,7 @@ class Restart(NamedTuple):
 
 def read_restart(path) -> Restart:
     """The verified restart data of a results file: continue with
-    ``simulate(..., t0=r.t, initial_state=r.state, initial_velocity=r.velocity)``
+    ``simulate(scene, integrator, r.t, t1, dt0, initial_state=r.state, initial_velocity=r.velocity)``
     (see `jaxvisco.resume`). A file whose restart state disagrees with its last
     committed frame is refused with a `ValueError` naming the mismatch."""
     import jax.numpy as jnp

@@ -19,8 +19,17 @@ import numpy as np
 import optax
 
 from .._config import jit
+from .._integrate._legacy import translate
+from .._integrate._saveat import SaveAt
+from .._integrate._schedule import (
+    AbstractFixedSteps,
+    AbstractStepSizeController,
+    ConstantStepSize,
+    StepTo,
+)
 from .._integrate._simulate import simulate
 from .._integrate._solution import FAILED
+from .._integrate._stepsize import PIDController
 from .._solver._newton import NewtonKrylov
 
 PARAMETERS = {
@@ -64,15 +73,16 @@ def with_parameters(scene, values: dict):
     return scene
 
 
-def identify(scene, integrator, observe: Callable, data, t_end, dt, initial: dict,
-             optimizer: Optional[optax.GradientTransformation] = None, max_iterations=50, gtol=1e-7,
-             ftol=1e-12, solver: NewtonKrylov = NewtonKrylov(rtol=1e-11), save_every=1, verbose=False,
-             names: Optional[Sequence[str]] = None) -> Identification:
+def identify(scene, integrator, observe: Callable, data, t1=None, dt0=None, initial: Optional[dict] = None, *,
+             t0=None, stepsize_controller: Optional[AbstractStepSizeController] = None,
+             saveat: Optional[SaveAt] = None, optimizer: Optional[optax.GradientTransformation] = None,
+             max_iterations=50, gtol=1e-7, ftol=1e-12, solver: NewtonKrylov = NewtonKrylov(rtol=1e-11),
+             verbose=False, names: Optional[Sequence[str]] = None, **deprecated) -> Identification:
     """Fit material parameters so that `observe(simulate(scene', ...))` matches `data`.
 
     **Arguments:**
-    - `scene`, `integrator`, `t_end`, `dt`, `save_every`, `solver`: the run, as in
-      `simulate`.
+    - `scene`, `integrator`, `t0`, `t1`, `dt0`, `stepsize_controller`, `saveat`, `solver`:
+      the run, as in `simulate`.
     - `observe`: `Solution -> array`, e.g. `lambda s: jnp.stack([s.free_energy,
       s.dissipated])` or the positions of a few nodes `lambda s: s.x[:, nodes]`.
     - `data`: the observations, shaped like `observe`'s output.
@@ -84,8 +94,16 @@ def identify(scene, integrator, observe: Callable, data, t_end, dt, initial: dic
     - `max_iterations`; convergence when the gradient norm (in log space) falls below
       `gtol` or the loss changes by less than `ftol` (relative) between iterations.
 
+    jaxvisco 0.1's `t_end`, `dt` and `save_every` are accepted as deprecated aliases.
+
     **Returns:** an `Identification`.
     """
+    if deprecated:
+        t1, dt0, saveat, stepsize_controller, _, _ = translate(deprecated, t1, dt0, saveat, stepsize_controller,
+                                                               None, None, where="identify",
+                                                               accepted=("t_end", "dt", "save_every"))
+    if initial is None:
+        raise TypeError("identify() needs initial, the starting values of the fitted parameters.")
     names = list(initial) if names is None else list(names)
     if not names:
         raise ValueError("initial must name at least one parameter to fit.")
@@ -101,8 +119,7 @@ def identify(scene, integrator, observe: Callable, data, t_end, dt, initial: dic
         raise ValueError("data must be finite and not all zero.")
 
     opt = default_optimizer() if optimizer is None else optimizer
-    static = _Static(tuple(names), integrator, observe, float(t_end), dt if np.isscalar(dt) else tuple(map(tuple, dt)),
-                     solver, int(save_every), opt)
+    static = _Static(tuple(names), integrator, observe, _Run.of(t0, t1, dt0, stepsize_controller, saveat), solver, opt)
     z = jnp.log(jnp.asarray([float(initial[n]) for n in names]))
     state = opt.init(z)
     step = functools.partial(_step, static)
@@ -137,21 +154,50 @@ def identify(scene, integrator, observe: Callable, data, t_end, dt, initial: dic
         iterations=it, message=message)
 
 
+class _Run(eqx.Module):
+    """The run of an identification, in a form a compiled step can hold: fixed steps as
+    their exact times (static), an adaptive controller as its (dynamic) arrays."""
+
+    t0: Optional[float] = eqx.field(static=True)
+    t1: Optional[float] = eqx.field(static=True)
+    dt0: Optional[float] = eqx.field(static=True)
+    steps: Optional[tuple] = eqx.field(static=True)
+    max_halvings: int = eqx.field(static=True)
+    pid: Optional[PIDController]
+    saveat: SaveAt
+
+    @classmethod
+    def of(cls, t0, t1, dt0, ctrl, saveat):
+        saveat = SaveAt() if saveat is None else saveat
+        if isinstance(ctrl, PIDController):
+            return cls(t0, t1, dt0, None, 0, ctrl, saveat)
+        ctrl = ConstantStepSize() if ctrl is None else ctrl
+        if not isinstance(ctrl, AbstractFixedSteps):
+            raise TypeError(f"stepsize_controller must be ConstantStepSize(), Schedule(...), StepTo(ts) or "
+                            f"PIDController(...), got {ctrl!r}.")
+        ts = ctrl.step_times(t0, t1, dt0)[1]
+        return cls(None, None, None, tuple(float(t) for t in ts), ctrl.max_halvings, None, saveat)
+
+    def simulate(self, scene, integrator, solver):
+        if self.pid is not None:
+            return simulate(scene, integrator, self.t0, self.t1, self.dt0, stepsize_controller=self.pid,
+                            saveat=self.saveat, solver=solver, throw=False)
+        return simulate(scene, integrator, stepsize_controller=StepTo(np.asarray(self.steps), self.max_halvings),
+                        saveat=self.saveat, solver=solver, throw=False)
+
+
 class _Static(eqx.Module):
     names: tuple = eqx.field(static=True)
     integrator: eqx.Module
     observe: Callable = eqx.field(static=True)
-    t_end: float = eqx.field(static=True)
-    dt: object = eqx.field(static=True)
+    run: _Run
     solver: NewtonKrylov
-    save_every: int = eqx.field(static=True)
     opt: object = eqx.field(static=True)
 
 
 def _loss(st, scene, data, scale, z):
     sc = with_parameters(scene, {n: jnp.exp(z[i]) for i, n in enumerate(st.names)})
-    sol = simulate(sc, st.integrator, t_end=st.t_end, dt=st.dt, solver=st.solver, save_every=st.save_every,
-                   throw=False)
+    sol = st.run.simulate(sc, st.integrator, st.solver)
     pred = observe_checked(st.observe, sol, data.shape)
     # A failed run (a step that did not converge) counts as an infinitely bad fit: the
     # line search then backtracks instead of trusting a truncated trajectory.
