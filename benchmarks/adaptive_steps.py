@@ -40,8 +40,8 @@ def adaptive_run(scene, k, tol, T, cap, repeats):
     ctrl = jv.PIDController(rtol=tol, atol=tol)
 
     def go():
-        return jv.simulate(scene, jv.eG(k), 0.0, T, None, stepsize_controller=ctrl, saveat=jv.SaveAt(every=1), max_steps=cap,
-                           throw=False)
+        return jv.simulate(scene, jv.eG(k), 0.0, T, None, stepsize_controller=ctrl, saveat=jv.SaveAt(every=1),
+                           max_steps=cap, throw=False)
 
     sol, first, wall, times = timed(go, repeats=repeats)
     return sol, first, wall, times

@@ -35,7 +35,8 @@ def main(argv=None):
     cap = 800  # as in work_precision.py for eG(2) (h down to 0.0125)
     cases = {}
     for h in (0.05, 0.025, 0.0125):
-        cases[("eG(2)", h)] = lambda h=h: jv.simulate(scene, jv.eG(2), t1=T, dt0=h, saveat=jv.SaveAt(every=cap), max_steps=cap)
+        cases[("eG(2)", h)] = lambda h=h: jv.simulate(scene, jv.eG(2), t1=T, dt0=h, saveat=jv.SaveAt(every=cap),
+                                                      max_steps=cap)
     for m in ("Radau", "BDF"):
         for tol in (1e-5, 1e-6, 1e-7, 1e-8):
             cases[(f"scipy {m}", tol)] = lambda m=m, tol=tol: solve_ivp(ode.fun, (0.0, T), ode.y0, method=m,

@@ -100,8 +100,8 @@ def run_adaptive(scene, name, scheme, tols, T, ref, cap, budget_s, repeats):
         ctrl = jv.PIDController(rtol=tol, atol=tol)
 
         def go():
-            return jv.simulate(scene, scheme, 0.0, T, None, stepsize_controller=ctrl, saveat=jv.SaveAt(every=cap), max_steps=cap,
-                               throw=False)
+            return jv.simulate(scene, scheme, 0.0, T, None, stepsize_controller=ctrl, saveat=jv.SaveAt(every=cap),
+                               max_steps=cap, throw=False)
 
         sol, first, wall, times = timed(go, repeats=repeats, budget_s=budget_s / 4)
         ok = sol.status == "done"
