@@ -34,7 +34,8 @@ _BETA_FLOOR = 1e-10
 
 
 class AbstractTimeElement(eqx.Module):
-    """A time-element scheme. Subclasses fix the degree and quadrature."""
+    """A time-element scheme: its degree `k`, its time quadrature (`_rules`) and what it
+    does at one spatial quadrature point (`point_kernel`, `point_dissipation`)."""
 
     k: eqx.AbstractVar[int]
     n_quad: eqx.AbstractVar[int]
@@ -44,51 +45,51 @@ class AbstractTimeElement(eqx.Module):
         """((points, weights) of the momentum equations, (points, weights) of the
         evolution law), as tuples."""
 
+    @abc.abstractmethod
+    def point_kernel(self, material, F, G, h):
+        """**Arguments:** `F` (k+1, 3, 3) and `G` (k+1, 3, 3) or None at the time nodes,
+        step `h`. **Returns:** `(P, R_G)`: stresses P = F S (nq_t, 3, 3) at the momentum
+        quadrature points, and the weak evolution residual (k, 6) (None if elastic)."""
+
+    @abc.abstractmethod
+    def point_dissipation(self, material, F, G, h):
+        """Energy dissipated at one spatial point over the step (per reference volume)."""
+
     @property
     def enhanced(self) -> bool:
-        return isinstance(self, eG)
+        """Whether the scheme drives the flow with assumed strains (eG)."""
+        return False
 
     @property
     def name(self) -> str:
-        return type(self).__name__ if isinstance(self, (Newmark, Midpoint)) else f"{type(self).__name__}({self.k})"
+        return f"{type(self).__name__}({self.k})"
+
+    def _rule_description(self):
+        (pts, _), _ = self._rules()
+        return f"{len(pts)}-point Gauss-Legendre"
 
     def describe(self) -> str:
-        (pts, _), (gpts, _) = self._rules()
-        rule = "trapezoidal" if isinstance(self, Newmark) else f"{len(pts)}-point Gauss-Legendre"
-        extra = ", internal variable by the midpoint rule" if isinstance(self, Newmark) else ""
-        return f"{self.name}, time quadrature: {rule}{extra}"
+        return f"{self.name}, time quadrature: {self._rule_description()}"
 
     def matrices(self):
         (pts, wts), (gpts, gwts) = self._rules()
         return time_element_matrices(self.k, pts, wts), time_element_matrices(self.k, gpts, gwts)
 
-    # -- the scheme at one spatial quadrature point ---------------------------------
+
+class AbstractStandardTimeElement(AbstractTimeElement):
+    """A scheme that evaluates the stresses and the evolution law at the interpolated
+    strains (cG(k) and the baselines)."""
+
     def point_kernel(self, material, F, G, h):
-        """**Arguments:** `F` (k+1, 3, 3) and `G` (k+1, 3, 3) or None at the time nodes,
-        step `h`. **Returns:** `(P, R_G)`: stresses P = F S (nq_t, 3, 3) at the momentum
-        quadrature points, and the weak evolution residual (k, 6) (None if elastic)."""
         m, mg = self.matrices()
         V = jnp.asarray(m["V"])
         Fl = jnp.einsum("lI,Iij->lij", V, F)
         Gl = None if G is None else jnp.einsum("lI,Iij->lij", V, G)
-        e = None
-        if self.enhanced:
-            e = self._enhanced_terms(material, F, G)
-            Cl, S = e["Cbar"], e["S"] + 2.0 * e["beta"] * e["Cd"]
-        else:
-            Cl = _cauchy_green(Fl)
-            S = jax.vmap(material.stress)(Cl, Gl) if G is not None else jax.vmap(material.stress)(Cl)
+        Cl = _cauchy_green(Fl)
+        S = jax.vmap(material.stress)(Cl, Gl) if G is not None else jax.vmap(material.stress)(Cl)
         P = Fl @ S
         if G is None:
             return P, None
-        if e is not None:
-            # The flow is driven by the algorithmic force (the energy gradient at the
-            # assumed strains plus its share of the correction), the same force the
-            # dissipation pairs with Gamma': with collocation at the Gauss points every
-            # point's D_n is a sum of non-negative terms (see `point_dissipation`).
-            rate = jax.vmap(material.gamma_rate_from_force)(e["Y"], Gl)
-            R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), e["Gd"] - h * rate)
-            return P, sym_to_vec(R_G)
         if mg is m:
             Cg, Gg = Cl, Gl
         else:  # a separate rule for the evolution law (Newmark's midpoint)
@@ -98,6 +99,94 @@ class AbstractTimeElement(eqx.Module):
         Gd = jnp.einsum("mI,Iij->mij", jnp.asarray(mg["D"]), G)
         rate = jax.vmap(material.gamma_rate)(Cg, Gg)
         R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), Gd - h * rate)
+        return P, sym_to_vec(R_G)
+
+    def point_dissipation(self, material, F, G, h):
+        """The time quadrature of the physical dissipation rate."""
+        if G is None:
+            return jnp.zeros((), dtype=F.dtype)
+        _, mg = self.matrices()
+        Vg, wg = jnp.asarray(mg["V"]), jnp.asarray(mg["weights"])
+        Cg = _cauchy_green(jnp.einsum("mI,Iij->mij", Vg, F))
+        Gg = jnp.einsum("mI,Iij->mij", Vg, G)
+        return h * jnp.sum(wg * jax.vmap(material.dissipation)(Cg, Gg))
+
+
+def _cauchy_green(F):
+    return jnp.swapaxes(F, -1, -2) @ F
+
+
+def _check_degree(k, n_quad, name):
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise ValueError(f"{name}: polynomial degree k must be an integer >= 1, got {k!r}.")
+    if n_quad is None:
+        return int(k), int(k)
+    if isinstance(n_quad, bool) or not isinstance(n_quad, (int, np.integer)) or n_quad < k:
+        raise ValueError(
+            f"{name}({k}): the time quadrature needs at least k = {k} Gauss points to integrate "
+            f"the linear terms exactly; got quadrature={n_quad!r}."
+        )
+    return int(k), int(n_quad)
+
+
+def _gauss(n):
+    p, w = gauss_legendre(n)
+    return tuple(float(v) for v in p), tuple(float(v) for v in w)
+
+
+class cG(AbstractStandardTimeElement):
+    """Standard continuous Galerkin time element of degree k.
+
+    With k Gauss points (the default) it is the k-stage Gauss collocation method:
+    order 2k at the nodes, momentum conserving, energy conserving only for quadratic H.
+    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points (>= k).
+    """
+
+    k: int = eqx.field(static=True)
+    n_quad: int = eqx.field(static=True)
+
+    def __init__(self, k=1, quadrature=None):
+        self.k, self.n_quad = _check_degree(k, quadrature, "cG")
+
+    def _rules(self):
+        rule = _gauss(self.n_quad)
+        return rule, rule
+
+
+class eG(AbstractTimeElement):
+    """Enhanced, energy-consistent Galerkin time element of degree k: assumed strains
+    interpolated over the time nodes plus an algorithmic stress, so that
+    $H_{n+1} - H_n = -D_n$ with $D_n \\ge 0$ holds exactly for every step.
+    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points (>= k)."""
+
+    k: int = eqx.field(static=True)
+    n_quad: int = eqx.field(static=True)
+
+    def __init__(self, k=1, quadrature=None):
+        self.k, self.n_quad = _check_degree(k, quadrature, "eG")
+
+    def _rules(self):
+        rule = _gauss(self.n_quad)
+        return rule, rule
+
+    @property
+    def enhanced(self) -> bool:
+        return True
+
+    def point_kernel(self, material, F, G, h):
+        e = self._enhanced_terms(material, F, G)
+        m, mg = self.matrices()
+        Fl = jnp.einsum("lI,Iij->lij", jnp.asarray(m["V"]), F)
+        P = Fl @ (e["S"] + 2.0 * e["beta"] * e["Cd"])
+        if G is None:
+            return P, None
+        # The flow is driven by the algorithmic force (the energy gradient at the
+        # assumed strains plus its share of the correction), the same force the
+        # dissipation pairs with Gamma': with collocation at the Gauss points every
+        # point's D_n is a sum of non-negative terms (see `point_dissipation`).
+        Gl = jnp.einsum("lI,Iij->lij", jnp.asarray(m["V"]), G)
+        rate = jax.vmap(material.gamma_rate_from_force)(e["Y"], Gl)
+        R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), e["Gd"] - h * rate)
         return P, sym_to_vec(R_G)
 
     def _enhanced_terms(self, material, F, G):
@@ -137,87 +226,20 @@ class AbstractTimeElement(eqx.Module):
         return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, Y=Y, beta=beta, w=w)
 
     def point_dissipation(self, material, F, G, h):
-        """Energy dissipated at one spatial point over the step (per reference volume).
-
-        eG: $-\\int Y : \\Gamma_h' d\\alpha$ with the algorithmic driving force
+        """$-\\int Y : \\Gamma_h' d\\alpha$ with the algorithmic driving force
         $Y = \\partial_\\Gamma\\Psi(\\bar C, \\Gamma_h) + Y_{alg}$, which closes the discrete
         energy balance exactly. The flow rule is collocated at the Gauss points with the
         same $Y$, so with k points (the default) this equals
         $h\\sum_l w_l \\operatorname{tr}(M_l\\,\\mathbb{V}^{-1}:M_l) \\ge 0$, $M_l = -2Y_l\\Gamma_l$;
         with more points than k the weak flow rule is no longer collocation and the sign
-        is not guaranteed. Otherwise: the time quadrature of the physical dissipation rate.
-        """
+        is not guaranteed."""
         if G is None:
             return jnp.zeros((), dtype=F.dtype)
-        m, mg = self.matrices()
-        if self.enhanced:
-            e = self._enhanced_terms(material, F, G)
-            return -jnp.sum(e["w"] * ddot(e["Y"], e["Gd"]))
-        Vg, wg = jnp.asarray(mg["V"]), jnp.asarray(mg["weights"])
-        Cg = _cauchy_green(jnp.einsum("mI,Iij->mij", Vg, F))
-        Gg = jnp.einsum("mI,Iij->mij", Vg, G)
-        return h * jnp.sum(wg * jax.vmap(material.dissipation)(Cg, Gg))
+        e = self._enhanced_terms(material, F, G)
+        return -jnp.sum(e["w"] * ddot(e["Y"], e["Gd"]))
 
 
-def _cauchy_green(F):
-    return jnp.swapaxes(F, -1, -2) @ F
-
-
-def _check_degree(k, n_quad, name):
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-        raise ValueError(f"{name}: polynomial degree k must be an integer >= 1, got {k!r}.")
-    if n_quad is None:
-        return int(k), int(k)
-    if isinstance(n_quad, bool) or not isinstance(n_quad, (int, np.integer)) or n_quad < k:
-        raise ValueError(
-            f"{name}({k}): the time quadrature needs at least k = {k} Gauss points to integrate "
-            f"the linear terms exactly; got quadrature={n_quad!r}."
-        )
-    return int(k), int(n_quad)
-
-
-def _gauss(n):
-    p, w = gauss_legendre(n)
-    return tuple(float(v) for v in p), tuple(float(v) for v in w)
-
-
-class cG(AbstractTimeElement):
-    """Standard continuous Galerkin time element of degree k.
-
-    With k Gauss points (the default) it is the k-stage Gauss collocation method:
-    order 2k at the nodes, momentum conserving, energy conserving only for quadratic H.
-    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points (>= k).
-    """
-
-    k: int = eqx.field(static=True)
-    n_quad: int = eqx.field(static=True)
-
-    def __init__(self, k=1, quadrature=None):
-        self.k, self.n_quad = _check_degree(k, quadrature, "cG")
-
-    def _rules(self):
-        rule = _gauss(self.n_quad)
-        return rule, rule
-
-
-class eG(AbstractTimeElement):
-    """Enhanced, energy-consistent Galerkin time element of degree k: assumed strains
-    interpolated over the time nodes plus an algorithmic stress, so that
-    $H_{n+1} - H_n = -D_n$ with $D_n \\ge 0$ holds exactly for every step.
-    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points (>= k)."""
-
-    k: int = eqx.field(static=True)
-    n_quad: int = eqx.field(static=True)
-
-    def __init__(self, k=1, quadrature=None):
-        self.k, self.n_quad = _check_degree(k, quadrature, "eG")
-
-    def _rules(self):
-        rule = _gauss(self.n_quad)
-        return rule, rule
-
-
-class Midpoint(AbstractTimeElement):
+class Midpoint(AbstractStandardTimeElement):
     """The implicit midpoint rule: cG(1) with one Gauss point."""
 
     k: int = eqx.field(static=True, default=1)
@@ -227,8 +249,12 @@ class Midpoint(AbstractTimeElement):
         rule = _gauss(1)
         return rule, rule
 
+    @property
+    def name(self) -> str:
+        return "Midpoint"
 
-class Newmark(AbstractTimeElement):
+
+class Newmark(AbstractStandardTimeElement):
     """Average-acceleration Newmark (trapezoidal rule on positions and momenta), the
     internal variable advanced by the midpoint rule."""
 
@@ -237,3 +263,10 @@ class Newmark(AbstractTimeElement):
 
     def _rules(self):
         return ((0.0, 1.0), (0.5, 0.5)), _gauss(1)
+
+    @property
+    def name(self) -> str:
+        return "Newmark"
+
+    def _rule_description(self):
+        return "trapezoidal, internal variable by the midpoint rule"
