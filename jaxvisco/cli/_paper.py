@@ -20,7 +20,6 @@ def _paper(args):
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     import jaxvisco as jv
 
@@ -68,6 +67,17 @@ def _paper(args):
                   f"H_end={r['energy'][-1]:.6g} (t={r['t_last']:.4g}) steps={r['steps']} wall={r['wall']:.1f}s",
                   flush=True)
             _warn_energy(saved, label)
+    _paper_figure(results, os.path.join(out, "energy.png"))
+    if not args.quiet:
+        print(f"wrote {out}/energy.png and {len(results)} results files", file=sys.stderr)
+    return 0
+
+
+def _paper_figure(results, path):
+    """The energy figure of the `_paper` runs (`results`: (scheme, schedule, run dict)
+    triples), H of all four runs and a zoom on eG(1), written to `path`."""
+    import matplotlib.pyplot as plt
+
     fig, (ax, az) = plt.subplots(1, 2, figsize=(12, 5))
     styles = {"cG1": "tab:red", "eG1": "tab:blue"}
     for scheme_name, sched_name, r in results:
@@ -92,8 +102,5 @@ def _paper(args):
     ax.legend()
     az.legend()
     fig.tight_layout()
-    fig.savefig(os.path.join(out, "energy.png"), dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
-    if not args.quiet:
-        print(f"wrote {out}/energy.png and {len(results)} results files", file=sys.stderr)
-    return 0
