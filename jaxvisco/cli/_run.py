@@ -16,6 +16,8 @@ from ._setup import parse_schedule
 
 
 def _run(args):
+    """`jaxvisco run`: its options resolved, then fixed steps (error-controlled ones in
+    `_run_adaptive`)."""
     import jaxvisco as jv
 
     restart = None
@@ -30,6 +32,22 @@ def _run(args):
     if adaptive:
         return _run_adaptive(args, sf, restart)
     integrator, scene = _run_setup(args, sf, restart)
+    steps, t_end = _fixed_steps(args, schedule_origin, restart)
+    c = chunk_size([len(steps)], target=args.chunk, save_every=args.save_every)
+    ts, state0, v0 = _continued_steps(args, restart, steps, t_end)
+    w = _open_writer(args, sf, scene, integrator, t_end, restart)
+    return _write_run(args, integrator, w, lambda stop: run_chunked(
+        scene, integrator, jv.StepTo(ts), chunk=c, commit_every=args.commit_every, save_every=args.save_every,
+        writer=w, save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet, initial_state=state0,
+        initial_velocity=v0, should_stop=stop, max_halvings=args.max_halvings,
+        solver=None if sf is None else sf.solver))
+
+
+def _fixed_steps(args, schedule_origin, restart):
+    """The steps of a run with fixed steps (`--schedule`, else `--dt`) and its final time;
+    with `--resume` a `--t-end` past the schedule's end continues its last step."""
+    import jaxvisco as jv
+
     if args.schedule is not None:
         dt = parse_schedule(args.schedule)
         schedule_name = schedule_origin or f"--schedule {args.schedule!r}"
@@ -46,7 +64,13 @@ def _run(args):
     else:
         t_end = 1.0 if args.t_end is None else args.t_end
         steps = jv.StepTo.from_schedule(0.0, t_end, 0.1 if args.dt is None else args.dt)
-    c = chunk_size([len(steps)], target=args.chunk, save_every=args.save_every)
+    return steps, t_end
+
+
+def _continued_steps(args, restart, steps, t_end):
+    """The step times still to take and the state and predictor velocity they start from:
+    all of `steps` from the scene's initial state, or with `--resume` the rest of them from
+    the stored run's last state (checked to lie on `steps`)."""
     state0, v0, ts = None, None, steps.ts
     if restart is not None:
         done = restart.n_steps
@@ -58,12 +82,7 @@ def _run(args):
                              f"puts step {done} at t = {ts[done]:.17g}; it cannot be continued with --t-end {t_end:g}.")
         ts = np.concatenate([[restart.t], ts[done + 1:]])
         state0, v0 = restart.state, restart.velocity
-    w = _open_writer(args, sf, scene, integrator, t_end, restart)
-    return _write_run(args, integrator, w, lambda stop: run_chunked(
-        scene, integrator, jv.StepTo(ts), chunk=c, commit_every=args.commit_every, save_every=args.save_every,
-        writer=w, save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet, initial_state=state0,
-        initial_velocity=v0, should_stop=stop, max_halvings=args.max_halvings,
-        solver=None if sf is None else sf.solver))
+    return ts, state0, v0
 
 
 def _run_adaptive(args, sf, restart):
