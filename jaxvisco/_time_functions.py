@@ -5,10 +5,13 @@ scalar; its parameters are float64 arrays, so a new value (a later switch-off ti
 larger amplitude) does not recompile a run, and a run may be differentiated with respect
 to them. A scene scales each of its loads by one of these (`Scene(loads=[(f, g), ...])`);
 scene files name them as tables, ``{ type = "ramp", t0 = 0.0, t1 = 1.0 }``, whose keys are
-the constructor's keywords.
+the constructor's keywords. `_time_function` turns what a scene is given as the time of a
+load or a prescribed motion (None, one of these, or a user's plain function of t, checked
+by tracing it once) into a time function.
 """
 
 import math
+from typing import Callable
 
 import equinox as eqx
 import jax
@@ -174,3 +177,56 @@ def time_function_from_dict(spec, where=""):
         return cls(**args)
     except ValueError as e:
         raise ValueError(f"{where}{e}") from None
+
+
+_LOAD_TIME_RULE = "load_time must be a JAX-traceable function of one scalar time t returning a scalar"
+_LOAD_TIME_FIX = "e.g. `lambda t: jnp.where(t < 3.0, 1.0, 0.0)` instead of `lambda t: 1.0 if t < 3 else 0.0`"
+
+
+def _check_load_time(load_time):
+    """Trace `load_time` once on an abstract scalar time (nothing is computed): reject a
+    function that JAX cannot trace, or whose value is not a real scalar, here rather than
+    deep inside `simulate`."""
+    if not callable(load_time):
+        raise TypeError(f"load_time must be a function of t, got {type(load_time).__name__} {load_time!r}.")
+    try:
+        out = jax.eval_shape(load_time, jax.ShapeDtypeStruct((), jnp.float64))
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+            jax.errors.TracerIntegerConversionError) as e:
+        raise ValueError(f"load_time could not be traced by JAX ({type(e).__name__}: {_first_line(e)}). "
+                         f"{_LOAD_TIME_RULE}: t is a tracer, so Python `if`, `float()`, `math` or numpy on t are not "
+                         f"allowed; write it with jax.numpy, {_LOAD_TIME_FIX}.") from e
+    except Exception as e:
+        raise ValueError(f"load_time(t) failed on a traced scalar t ({type(e).__name__}: {_first_line(e)}). "
+                         f"{_LOAD_TIME_RULE}, {_LOAD_TIME_FIX}.") from e
+    if not isinstance(out, jax.ShapeDtypeStruct):
+        n = len(jax.tree_util.tree_leaves(out))
+        raise ValueError(f"load_time(t) must return one scalar, got a {type(out).__name__} of {n} values.")
+    if out.shape != ():
+        raise ValueError(f"load_time(t) must return a scalar (shape ()), got shape {out.shape}; the load is scaled by "
+                         "one number at each time.")
+    if not (jnp.issubdtype(out.dtype, jnp.floating) or jnp.issubdtype(out.dtype, jnp.integer) or out.dtype == bool):
+        raise ValueError(f"load_time(t) must return a real scalar, got dtype {out.dtype}.")
+
+
+class _PlainTimeFunction(AbstractTimeFunction):
+    """A user's function of t, kept static (hashed by identity) like any callable."""
+
+    fn: Callable = eqx.field(static=True)
+
+    def __call__(self, t):
+        return self.fn(t)
+
+
+def _time_function(g):
+    if g is None:
+        return Constant(1.0)
+    if isinstance(g, AbstractTimeFunction):
+        return g
+    _check_load_time(g)
+    return _PlainTimeFunction(g)
+
+
+def _first_line(e):
+    lines = str(e).strip().splitlines()
+    return lines[0] if lines else ""
