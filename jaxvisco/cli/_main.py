@@ -33,10 +33,6 @@ from ._setup import make_scene as make_scene
 from ._setup import parse_schedule as parse_schedule
 
 
-class _CLIError(Exception):
-    pass
-
-
 def build_parser():
     p = argparse.ArgumentParser(prog="jaxvisco", description="Finite-strain viscoelastodynamics with "
                                 "energy-consistent Galerkin time elements (Gross & Betsch 2005).")
@@ -143,7 +139,7 @@ def main(argv=None):
         print(f"jaxvisco: warning: no compilation cache ({e}); every run compiles afresh", file=sys.stderr)
     try:
         return args.func(args)
-    except (ValueError, TypeError, FileNotFoundError, OSError, jv.SolverError, _CLIError) as e:
+    except (ValueError, TypeError, FileNotFoundError, OSError, jv.SolverError) as e:
         msg = " ".join(str(e).split())
         print(f"jaxvisco: error: {msg}", file=sys.stderr)
         return 2
