@@ -27,6 +27,7 @@ halves more often than that, or a sub-step that does not converge again when rep
 raises an error at run time instead of returning a wrong derivative.
 """
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -90,6 +91,9 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     record's slots), the end velocity and whether a replayed sub-step failed."""
     size = rec.t.shape[0]
     seg = min(segment, size)
+    # A backward sweep needs the factorizations of a whole segment at once (one per
+    # sub-step for the derivative, a few more for Newton when the segment is re-run).
+    solver = dataclasses.replace(solver, retain=max(solver.retain, 64 + 8 * seg))
     n_seg = -(-size // seg)
     pad = n_seg * seg - size
     ts = jnp.pad(rec.t, (0, pad)).reshape(n_seg, seg)

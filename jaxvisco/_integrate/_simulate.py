@@ -18,7 +18,7 @@ import numpy as np
 from .._config import _top_level, jit
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
-from .._solver._tangent import empty_tangent, position_pattern
+from .._solver._tangent import empty_tangent
 from .._time_element._step import make_context, predictor, step_outcome
 from .._time_element._time_element import AbstractTimeElement
 from .._validation import check_finite
@@ -118,23 +118,16 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
         hs, te = _padded(hs, te, int(max_steps))
     elif _top_level():  # traced callers keep arrays of the run's length
         hs, te = _padded(hs, te, capacity(n_active))
-    segment = _segment(scene, integrator, record_size(len(hs)), saveat, adjoint)
+    segment = _segment(record_size(len(hs)), saveat, adjoint)
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
                jnp.asarray(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment)
     return _finish(sol, integrator, ctrl.max_halvings, throw)
 
 
-def _segment(scene, integrator, n_record, saveat, adjoint):
+def _segment(n_record, saveat, adjoint):
     """Sub-steps per checkpointed segment of the derivative's replay, for a record of
     `n_record` sub-steps."""
-    segment = segment_length(n_record, saveat.every, adjoint.checkpoint_every)
-    if not _top_level():
-        # Under a transformation the run may be differentiated: a backward sweep needs
-        # the factorizations of a whole segment at once (one per sub-step for the
-        # derivative, a few more for Newton when the segment is re-run).
-        position_pattern(scene.disc.cells, integrator.k, scene.disc.n_nodes, scene.dim, scene.fixed).reserve(
-            64 + 8 * segment)
-    return segment
+    return segment_length(n_record, saveat.every, adjoint.checkpoint_every)
 
 
 def _option(name, value, default, cls, accepted):
@@ -201,7 +194,7 @@ def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solv
                           jnp.asarray(h0), cap, saveat.every, saveat.gamma,
                           None if saveat.ts is None else jnp.asarray(saveat.ts),
                           None if event is None else jnp.asarray(float(event.tol)), v0, use_v0,
-                          _segment(scene, integrator, cap, saveat, adjoint))
+                          _segment(cap, saveat, adjoint))
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()

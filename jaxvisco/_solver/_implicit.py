@@ -68,7 +68,7 @@ def _solve_jvp(primals, tangents, *, solver, scheme):
         return eqx.tree_at(lambda r: r.x, R, R.x * sx)
 
     _, jvp = jax.linearize(lambda u: scaled(residual(scheme, scene, ctx, u)), U)
-    tan = form_tangent(scheme, scene, ctx, U)
+    tan = form_tangent(scheme, scene, ctx, U, retain=solver.retain)
     dU = refined_solve(jvp, lambda r: schur_solve(scheme, scene, ctx, tan, unscale(r)),
                        scaled(jax.tree_util.tree_map(jnp.negative, dR)))
     t_out = jax.tree_util.tree_map(lambda _: None, out)

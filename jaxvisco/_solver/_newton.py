@@ -27,6 +27,7 @@ import lineax as lx
 
 from .._fem._krylov import gmres
 from .._time_element._step import residual
+from ._sparse import RETAIN
 from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
 
 _LINEAR_SOLVERS = ("krylov", "direct")
@@ -68,6 +69,9 @@ class NewtonKrylov(eqx.Module):
       discarded, and Newton–Krylov continues from the last point that did. They are
       counted in `Solution.chord_iterations`, not in `newton_iterations`.
     - `chord_contraction`: the contraction a chord iteration must reach (0.5).
+    - `retain`: factorizations of the condensed tangent that stay alive on the host
+      (least recently used go first; at most 2 GiB). A run needs one or two; the
+      derivative of a run raises it to what its checkpointed segments hold (`replay`).
     """
 
     rtol: float = eqx.field(static=True, default=1e-10)
@@ -80,6 +84,7 @@ class NewtonKrylov(eqx.Module):
     reuse_limit: int = eqx.field(static=True, default=20)
     chord: int = eqx.field(static=True, default=10)
     chord_contraction: float = eqx.field(static=True, default=0.5)
+    retain: int = eqx.field(static=True, default=RETAIN)
 
     def __check_init__(self):
         if self.linear_solver not in _LINEAR_SOLVERS:
@@ -185,7 +190,8 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         refresh = c["refresh"] | (c["n_ls"] > 0)  # a step that needed backtracking
 
         def newton_step(tan):
-            tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation), lambda: tan)
+            tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation, solver.retain),
+                               lambda: tan)
             precond = lambda r: schur_solve(scheme, scene, ctx, tan, _scaled(r, 1.0 / sx), rotation)  # noqa: E731
             rhs = jax.tree_util.tree_map(jnp.negative, _scaled(Rt, sx))
             if direct:

@@ -66,10 +66,18 @@ def _exportable():
 register_check(_exportable)
 
 
-class HostLU:
-    """Factorizations of matrices with one fixed sparsity pattern (COO rows/cols)."""
+RETAIN = 64  # factorizations a plain run keeps alive (its reused tangent needs 1-2)
 
-    def __init__(self, rows, cols, n, cache_size=64, max_bytes=2 * 2**30):
+
+class HostLU:
+    """Factorizations of matrices with one fixed sparsity pattern (COO rows/cols).
+
+    The store keeps the most recently used factorizations: at least as many as the
+    program that factors asks for (`retain`, a constant of each factor call: `RETAIN`
+    for a plain run, a checkpointed segment's worth when the run is differentiated) and
+    at most `max_bytes` of them."""
+
+    def __init__(self, rows, cols, n, max_bytes=2 * 2**30):
         rows = np.asarray(rows, dtype=np.int64).ravel()
         cols = np.asarray(cols, dtype=np.int64).ravel()
         key = cols * n + rows
@@ -82,15 +90,10 @@ class HostLU:
         self.key = int.from_bytes(digest, "little") & (2**63 - 1)
         _REGISTRY[self.key] = self
         self._cache = collections.OrderedDict()
-        self._cache_size = cache_size
+        self._retain = RETAIN
         self._max_bytes = max_bytes
         self._bytes = collections.OrderedDict()
         self._ids = itertools.count()
-
-    def reserve(self, n):
-        """Keep at least `n` factorizations alive (reverse-mode sweeps need every step of
-        a segment's); memory stays capped by `max_bytes`."""
-        self._cache_size = max(self._cache_size, int(n))
 
     def matrix(self, data):
         vals = np.bincount(self._inverse, weights=np.asarray(data, dtype=np.float64).ravel(), minlength=self.nnz)
@@ -102,7 +105,9 @@ class HostLU:
     # SuperLU's default COLAMD (benchmarks/profile_step.py --dim 3 ...).
     permc_spec = "MMD_AT_PLUS_A"
 
-    def factor(self, data):
+    def factor(self, data, retain=RETAIN):
+        """Factor the matrix with COO values `data`; keep at least the `retain` most
+        recently used factorizations (and at most `max_bytes`). Returns the token."""
         try:
             lu = spla.splu(self.matrix(data), permc_spec=self.permc_spec)
         except RuntimeError:  # exactly singular
@@ -110,8 +115,8 @@ class HostLU:
         token = next(self._ids)
         self._cache[token] = lu
         self._bytes[token] = 12 * (lu.L.nnz + lu.U.nnz)
-        while len(self._cache) > 1 and (len(self._cache) > self._cache_size
-                                        or sum(self._bytes.values()) > self._max_bytes):
+        self._retain = max(int(retain), 1)
+        while len(self._cache) > 1 and (len(self._cache) > self._retain or sum(self._bytes.values()) > self._max_bytes):
             old, _ = self._cache.popitem(last=False)
             self._bytes.pop(old)
         return np.int64(token)
@@ -126,10 +131,10 @@ class HostLU:
             self._bytes.move_to_end(token)
         if lu is None:
             raise RuntimeError(
-                f"jaxvisco: factorization {token} is no longer cached (the cache keeps the "
-                f"{self._cache_size} most recent ones, at most {self._max_bytes / 2**30:.1f} GiB). "
-                "Differentiating a long run? Lower `checkpoint_every` so fewer factorizations "
-                "must stay alive at once.")
+                f"jaxvisco: factorization {token} is no longer cached (the last factor call kept the "
+                f"{self._retain} most recent ones, at most {self._max_bytes / 2**30:.1f} GiB). "
+                "Differentiating a long run? Lower RecursiveCheckpointAdjoint(checkpoint_every=...) so fewer "
+                "factorizations must stay alive at once.")
         return lu.solve(np.asarray(b, dtype=np.float64), trans="T" if trans else "N")
 
 
@@ -148,21 +153,30 @@ def _on_worker(fn):
     return run
 
 
-def _host_call(op, key, token, src, dst):
-    """What the FFI targets call (with the GIL): factor (op 0) the values in `src` and
-    write the token to `dst`, or solve (op 1; op 2 transposed) with `token` for the
-    right-hand side `src` into `dst`. `src`, `dst`: memoryviews of XLA's buffers, valid
-    during the call only."""
+def _pattern(key):
     host = _REGISTRY.get(key)
     if host is None:
         raise RuntimeError(f"jaxvisco: no sparsity pattern with key {key} in this process (the compiled program "
                            "outlived its pattern); call jax.clear_caches() and run again.")
+    return host
+
+
+def _host_call(op, key, arg, src, dst):
+    """What the FFI targets call (with the GIL): factor (op 0) the values in `src`
+    keeping at least `arg` factorizations, and write the token to `dst`; or solve (op 1;
+    op 2 transposed) with the token `arg` for the right-hand side `src` into `dst`.
+    `src`, `dst`: memoryviews of XLA's buffers, valid during the call only."""
+    host = _pattern(key)
     if op == 0:
         data = np.frombuffer(src, dtype=np.float64)
-        np.frombuffer(dst, dtype=np.int64)[0] = _on_worker(host.factor)(data)
+        np.frombuffer(dst, dtype=np.int64)[0] = _on_worker(host.factor)(data, retain=arg)
     else:
         b = np.frombuffer(src, dtype=np.float64)
-        np.frombuffer(dst, dtype=np.float64)[:] = _on_worker(host.solve)(token, b, trans=op == 2)
+        np.frombuffer(dst, dtype=np.float64)[:] = _on_worker(host.solve)(arg, b, trans=op == 2)
+
+
+def _factor_by_key(key, data, retain):
+    return _pattern(key).factor(data, retain=retain)
 
 
 if _hostlu is not None:
@@ -171,14 +185,24 @@ if _hostlu is not None:
     jax.ffi.register_ffi_target("jaxvisco_lu_solve", _hostlu.solve_target(), platform="cpu")
 
 
-def lu_factor(host: HostLU, data):
-    """Factor the matrix with COO values `data`; returns an integer token."""
+def lu_factor(host: HostLU, data, retain=RETAIN):
+    """Factor the matrix with COO values `data`, keeping at least `retain` factorizations
+    of the pattern alive; returns an integer token.
+
+    The values carry no derivative (`stop_gradient`). The fallback path is a
+    `pure_callback`, although factoring adds to the host store: JAX may drop a call
+    whose token is unused, repeat one (a new token for equal factors) or move it, but
+    never before its values exist nor after a solve that reads its token, and none of
+    that changes a result. An `io_callback` would say "impure" honestly, but JAX cannot
+    rematerialize effects: ``jax.checkpoint`` (the reverse-mode replay) refuses it
+    (NotImplementedError: Effects not supported in partial-eval of checkpoint/remat)."""
     data = jax.lax.stop_gradient(data)
     out = jax.ShapeDtypeStruct((), jnp.int64)
     if backend() == "ffi":
         return jax.ffi.ffi_call("jaxvisco_lu_factor", out, vmap_method="sequential")(
-            jnp.asarray(data, jnp.float64), key=np.int64(host.key))
-    return jax.pure_callback(_on_worker(host.factor), out, data, vmap_method="sequential")
+            jnp.asarray(data, jnp.float64), key=np.int64(host.key), retain=np.int64(retain))
+    return jax.pure_callback(_on_worker(functools.partial(_factor_by_key, host.key, retain=int(retain))), out, data,
+                             vmap_method="sequential")
 
 
 def lu_solve(host: HostLU, token, b, trans=False):
@@ -189,43 +213,48 @@ def lu_solve(host: HostLU, token, b, trans=False):
     solve of `_tangent`) can be linearized, transposed and vmapped: the implicit
     derivatives of a time step reuse the factorization in both directions.
     """
-    return _lu_solve_p.bind(jnp.asarray(token, jnp.int64), b, host=host, trans=bool(trans))
+    return _lu_solve_p.bind(jnp.asarray(token, jnp.int64), b, key=int(host.key), trans=bool(trans))
 
 
-def _lu_solve_impl(token, b, *, host, trans):
+def _lu_solve_impl(token, b, *, key, trans):
     out = jax.ShapeDtypeStruct(b.shape, b.dtype)
     if backend() == "ffi":
         return jax.ffi.ffi_call("jaxvisco_lu_solve", out, vmap_method="sequential")(
-            token, b, key=np.int64(host.key), trans=np.int64(trans))
+            token, b, key=np.int64(key), trans=np.int64(trans))
+    # A solve only reads the store: a pure function of the token and b.
     return jax.pure_callback(
-        _on_worker(functools.partial(host.solve, trans=trans)), out, token, b, vmap_method="sequential",
+        _on_worker(functools.partial(_solve_by_key, key, trans=trans)), out, token, b, vmap_method="sequential",
     )
 
 
-def _lu_solve_jvp(primals, tangents, *, host, trans):
+def _solve_by_key(key, token, b, trans):
+    return _pattern(key).solve(token, b, trans=trans)
+
+
+def _lu_solve_jvp(primals, tangents, *, key, trans):
     token, b = primals
-    out = _lu_solve_p.bind(token, b, host=host, trans=trans)
+    out = _lu_solve_p.bind(token, b, key=key, trans=trans)
     db = tangents[1]
     if type(db) is ad.Zero:
         return out, ad.Zero.from_primal_value(out)
-    return out, _lu_solve_p.bind(token, db, host=host, trans=trans)
+    return out, _lu_solve_p.bind(token, db, key=key, trans=trans)
 
 
-def _lu_solve_transpose(ct, token, b, *, host, trans):
+def _lu_solve_transpose(ct, token, b, *, key, trans):
     if ad.is_undefined_primal(token):
         raise ValueError("lu_solve is not linear in the factorization token.")
     if type(ct) is ad.Zero:
         return None, ad.Zero(b.aval)
-    return None, _lu_solve_p.bind(token, ct, host=host, trans=not trans)
+    return None, _lu_solve_p.bind(token, ct, key=key, trans=not trans)
 
 
-def _lu_solve_batch(args, dims, *, host, trans):
+def _lu_solve_batch(args, dims, *, key, trans):
     token, b = args
     td, bd = dims
     size = token.shape[td] if td is not None else b.shape[bd]
     token = jnp.broadcast_to(token, (size,)) if td is None else jnp.moveaxis(token, td, 0)
     b = jnp.broadcast_to(b, (size,) + b.shape) if bd is None else jnp.moveaxis(b, bd, 0)
-    out = jax.lax.map(lambda tb: _lu_solve_p.bind(tb[0], tb[1], host=host, trans=trans), (token, b))
+    out = jax.lax.map(lambda tb: _lu_solve_p.bind(tb[0], tb[1], key=key, trans=trans), (token, b))
     return out, 0
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from .._export import record_pattern, register_pattern
 from .._fem._tensor import small_inv, sym_to_vec, vec_to_sym
 from .._time_element._step import Unknowns, constraint_scale, force_term, nodal_fields
-from ._sparse import HostLU, lu_factor, lu_solve
+from ._sparse import RETAIN, HostLU, lu_factor, lu_solve
 
 
 def position_pattern(cells, k, n_nodes, dim, fixed=None):
@@ -155,9 +155,10 @@ def _map_points(fn, xs):
     return jax.tree_util.tree_map(lambda o: o.reshape((m * b,) + o.shape[2:])[:n], out)
 
 
-def form_tangent(scheme, scene, ctx, U, rotation=None) -> Tangent:
+def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN) -> Tangent:
     """Condensed tangent at U: local inverses, sensitivities, and the factored position
-    block $A \\otimes M / h + h\\,\\sum_l W K_l$ (exact, with Γ eliminated)."""
+    block $A \\otimes M / h + h\\,\\sum_l W K_l$ (exact, with Γ eliminated). `retain`:
+    factorizations of the pattern the host store keeps alive (`NewtonKrylov.retain`)."""
     m, _ = scheme.matrices()
     k, d, disc = scheme.k, scene.dim, scene.disc
     _, F, G = nodal_fields(scheme, scene, ctx, U)
@@ -189,7 +190,7 @@ def form_tangent(scheme, scene, ctx, U, rotation=None) -> Tangent:
     else:
         data = Ke.reshape(-1)
     host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
-    token = lu_factor(host, data)
+    token = lu_factor(host, data, retain)
     rotation = jnp.eye(d) if rotation is None else rotation
     return Tangent(token, ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG)
 

@@ -62,8 +62,10 @@ static ffi::Error CallPython(int64_t op, int64_t key, int64_t token, void* src, 
   return ffi::Error::Success();
 }
 
-static ffi::Error Factor(int64_t key, ffi::Buffer<ffi::F64> data, ffi::ResultBufferR0<ffi::S64> token) {
-  return CallPython(0, key, -1, data.typed_data(), data.size_bytes(), token->typed_data(), sizeof(int64_t));
+// Factor: `retain` (how many factorizations the pattern's store keeps alive, at least)
+// travels to Python in the token slot, which a factorization does not use.
+static ffi::Error Factor(int64_t key, int64_t retain, ffi::Buffer<ffi::F64> data, ffi::ResultBufferR0<ffi::S64> token) {
+  return CallPython(0, key, retain, data.typed_data(), data.size_bytes(), token->typed_data(), sizeof(int64_t));
 }
 
 static ffi::Error Solve(int64_t key, int64_t trans, ffi::BufferR0<ffi::S64> token, ffi::Buffer<ffi::F64> b,
@@ -75,6 +77,7 @@ static ffi::Error Solve(int64_t key, int64_t trans, ffi::BufferR0<ffi::S64> toke
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxviscoLuFactor, Factor,
                               ffi::Ffi::Bind()
                                   .Attr<int64_t>("key")
+                                  .Attr<int64_t>("retain")
                                   .Arg<ffi::Buffer<ffi::F64>>()
                                   .Ret<ffi::BufferR0<ffi::S64>>());
 
