@@ -142,13 +142,16 @@ class HostLU:
 # own (changing) threads, and glibc keeps the memory SuperLU frees in per-thread arenas:
 # a 10 000-step run grew by ~0.27 MiB per step that way, while on one thread the
 # resident memory stayed flat (1682.2 -> 1682.4 MiB over 900 steps, measured).
-_WORKER = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxvisco-superlu")
+# The thread starts with the first factorization (importing jaxvisco starts none).
+@functools.lru_cache(maxsize=1)
+def _worker():
+    return concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxvisco-superlu")
 
 
 def _on_worker(fn):
     @functools.wraps(fn)
     def run(*args, **kwargs):
-        return _WORKER.submit(fn, *args, **kwargs).result()
+        return _worker().submit(fn, *args, **kwargs).result()
 
     return run
 
