@@ -36,9 +36,9 @@ def _rms(a):
 def test_identities_hold_at_every_accepted_step(lshape, k):
     """Energy balance (<= 1e-9 H_0 per step), D_n >= 0 and both momenta (1e-10) at every
     accepted step, with steps that change and at least one rejection."""
-    sol = jv.simulate(lshape, jv.eG(k), 3.0, 0.5, solver=TIGHT, stepsize_controller=jv.PIDController(1e-4, 1e-4))
+    sol = jv.simulate(lshape, jv.eG(k), t1=3.0, dt0=0.5, stepsize_controller=jv.PIDController(1e-4, 1e-4), solver=TIGHT)
     assert sol.status == "done"
-    assert float(sol.t[-1]) == 3.0 and float(sol.step_t[-1]) == 3.0  # the last step ends at t_end exactly
+    assert float(sol.t[-1]) == 3.0 and float(sol.step_t[-1]) == 3.0  # the last step ends at t1 exactly
     h = np.asarray(sol.step_h)
     assert np.allclose(np.cumsum(h), np.asarray(sol.step_t), rtol=0, atol=1e-12)
     assert len(np.unique(h)) >= 3  # the controller does change the step
@@ -72,7 +72,7 @@ def test_estimate_matches_true_local_error(lshape):
     [0.3, 3] (measured 0.6-1.2; benchmarks/adaptive_effectivity.py for eG(1..3)). The
     true error: the same start state integrated by eG(1) with 24 sub-steps between
     consecutive check points (its error is ~600 times smaller)."""
-    run = jv.simulate(lshape, jv.eG(1), 4.0, 0.1, save_gamma=True, solver=TIGHT)
+    run = jv.simulate(lshape, jv.eG(1), t1=4.0, dt0=0.1, saveat=jv.SaveAt(gamma=True), solver=TIGHT)
     sigma = defect_matrices(1)[0]
     knots = np.concatenate([[0.0], sigma])
     for frame in (0, 30):
@@ -84,8 +84,8 @@ def test_estimate_matches_true_local_error(lshape):
             m = 24
             ts = np.concatenate([t + h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(m) / m)
                                  for i in range(len(sigma))] + [[t + h * sigma[-1]]])
-            ref = jv.simulate(lshape, jv.eG(1), None, jv.StepTo(ts), initial_state=state, save_gamma=True,
-                              initial_velocity=v, solver=TIGHT)
+            ref = jv.simulate(lshape, jv.eG(1), stepsize_controller=jv.StepTo(ts), saveat=jv.SaveAt(gamma=True),
+                              initial_state=state, initial_velocity=v, solver=TIGHT)
             idx = m * np.arange(1, len(sigma) + 1)
             true_x = np.asarray(states.x) - np.asarray(ref.x)[idx]
             true_g = np.asarray(jv._fem._tensor.sym_to_vec(states.gamma)) - np.asarray(
@@ -105,15 +105,15 @@ def test_dense_output(lshape):
     frame's energies are those of its interpolated state."""
     ts = np.linspace(0.0, 1.5, 16)
     rtol = 1e-4
-    sol = jv.simulate(lshape, jv.eG(2), 1.5, None, solver=TIGHT, saveat=jv.SaveAt(ts), save_gamma=True,
-                      stepsize_controller=jv.PIDController(rtol, rtol))
+    sol = jv.simulate(lshape, jv.eG(2), t1=1.5, stepsize_controller=jv.PIDController(rtol, rtol),
+                      saveat=jv.SaveAt(ts, gamma=True), solver=TIGHT)
     assert sol.status == "done" and len(sol.t) == len(ts)
     np.testing.assert_array_equal(np.asarray(sol.t), ts)
     np.testing.assert_array_equal(np.asarray(sol.x[0]), np.asarray(lshape.x0))
     step_t = np.asarray(sol.step_t)
     inside = [i for i, t in enumerate(ts) if np.min(np.abs(step_t - t)) > 1e-3]
     assert len(inside) >= 10  # most requested times fall inside steps
-    ref = jv.simulate(lshape, jv.eG(2), 1.5, 0.01, solver=TIGHT)
+    ref = jv.simulate(lshape, jv.eG(2), t1=1.5, dt0=0.01, solver=TIGHT)
     ref_t = np.asarray(ref.t)
     at = [int(np.argmin(np.abs(ref_t - t))) for t in ts]
     assert np.allclose(ref_t[at], ts, rtol=0, atol=1e-12)
@@ -132,25 +132,25 @@ def test_dense_output(lshape):
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_gradient_along_accepted_steps(lshape):
-    """`differentiable=True` with a controller differentiates the run along its accepted
+    """`jax.grad` of a run with a controller differentiates it along its accepted
     steps (step sizes are constants of the derivative): jax.grad against central
     differences of the same fixed step sequence."""
     import equinox as eqx
 
     ctrl = jv.PIDController(1e-3, 1e-3)
-    base = jv.simulate(lshape, jv.eG(1), 1.0, 0.1, stepsize_controller=ctrl, solver=TIGHT)
+    base = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, solver=TIGHT)
     ts = np.concatenate([[0.0], np.asarray(base.step_t)])
 
     def with_eta(log_eta):
         return eqx.tree_at(lambda s: s.material.eta_dev, lshape, jnp.exp(log_eta))
 
     def loss(log_eta):
-        sol = jv.simulate(with_eta(log_eta), jv.eG(1), 1.0, 0.1, stepsize_controller=ctrl, solver=TIGHT,
-                          differentiable=True)
+        sol = jv.simulate(with_eta(log_eta), jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, solver=TIGHT)
         return sol.dissipated[-1]
 
     def fixed(log_eta):
-        return float(jv.simulate(with_eta(log_eta), jv.eG(1), None, jv.StepTo(ts), solver=TIGHT).dissipated[-1])
+        sol = jv.simulate(with_eta(log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts), solver=TIGHT)
+        return float(sol.dissipated[-1])
 
     x0 = float(jnp.log(lshape.material.eta_dev))
     g = float(jax.grad(loss)(jnp.asarray(x0)))
@@ -167,16 +167,17 @@ def test_max_steps_and_early_stop(lshape):
     """A run that needs more accepted steps than `max_steps` ends "max_steps" with what it
     has (the command line's chunks are such runs: same program, 4 steps, Γ saved)."""
     ctrl = jv.PIDController(1e-4, 1e-4)
-    sol = jv.simulate(lshape, jv.eG(1), 2.0, 0.05, stepsize_controller=ctrl, max_steps=4, throw=False,
-                      save_gamma=True)
+    sol = jv.simulate(lshape, jv.eG(1), t1=2.0, dt0=0.05, stepsize_controller=ctrl, saveat=jv.SaveAt(gamma=True),
+                      max_steps=4, throw=False)
     assert sol.status == "max_steps" and int(sol.n_steps) == 4 and len(sol.t) == 5
     assert float(sol.t[-1]) < 2.0
     with pytest.raises(jv.SolverError, match="max_steps = 4"):
-        jv.simulate(lshape, jv.eG(1), 2.0, 0.05, stepsize_controller=ctrl, max_steps=4, save_gamma=True)
+        jv.simulate(lshape, jv.eG(1), t1=2.0, dt0=0.05, stepsize_controller=ctrl, saveat=jv.SaveAt(gamma=True),
+                    max_steps=4)
     # A body at rest: equilibrium after the first step.
     rest = jv.Scene(lshape.mesh, lshape.material, 8.93, velocities=0.0 * lshape.v0)
-    sol = jv.simulate(rest, jv.eG(1), 100.0, 0.1, stepsize_controller=ctrl, stop_at_equilibrium=1e-8, max_steps=4,
-                      save_gamma=True, throw=False)
+    sol = jv.simulate(rest, jv.eG(1), t1=100.0, dt0=0.1, stepsize_controller=ctrl, saveat=jv.SaveAt(gamma=True),
+                      event=jv.Equilibrium(1e-8), max_steps=4, throw=False)
     assert sol.status == "equilibrium" and int(sol.n_steps) == 1
 
 
@@ -192,20 +193,21 @@ def test_bad_input(lshape):
     with pytest.raises(ValueError, match="safety must be in"):
         jv.PIDController(1e-3, 1e-3, safety=1.5)
     ctrl = jv.PIDController(1e-3, 1e-3)
-    with pytest.raises(ValueError, match="schedules and StepTo fix the steps"):
-        jv.simulate(lshape, jv.eG(1), 1.0, [(1.0, 0.1)], stepsize_controller=ctrl)
+    with pytest.raises(ValueError, match="Schedule and StepTo fix the steps"):
+        jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=[(1.0, 0.1)], stepsize_controller=ctrl)
     with pytest.raises(ValueError, match="needs error-controlled steps"):
-        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5]))
-    with pytest.raises(ValueError, match=r"ts must lie within \[t0, t_end\]"):
-        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5, 2.0]), stepsize_controller=ctrl)
-    with pytest.raises(ValueError, match="not available with differentiable=True"):
-        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, saveat=jv.SaveAt([0.5]), stepsize_controller=ctrl, differentiable=True)
+        jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, saveat=jv.SaveAt([0.5]))
+    with pytest.raises(ValueError, match=r"ts must lie within \[t0, t1\]"):
+        jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, saveat=jv.SaveAt([0.5, 2.0]))
+    with pytest.raises(ValueError, match=r"SaveAt\(ts\) \(dense output\) cannot be differentiated yet"):
+        jax.jvp(lambda eta: jv.simulate(jv.with_parameters(lshape, {"eta_dev": eta}), jv.eG(1), t1=1.0, dt0=0.1,
+                                        stepsize_controller=ctrl, saveat=jv.SaveAt([0.5])).x, (5e4,), (1.0,))
     with pytest.raises(ValueError, match="must not decrease"):
         jv.SaveAt([0.5, 0.2])
-    with pytest.raises(TypeError, match="stepsize_controller must be a PIDController"):
-        jv.simulate(lshape, jv.eG(1), 1.0, 0.1, stepsize_controller="pid")
-    with pytest.raises(ValueError, match="finite t0 < t_end"):
-        jv.simulate(lshape, jv.eG(1), None, 0.1, stepsize_controller=ctrl)
+    with pytest.raises(TypeError, match=r"stepsize_controller must be ConstantStepSize\(\), Schedule"):
+        jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller="pid")
+    with pytest.raises(ValueError, match="finite t0 < t1"):
+        jv.simulate(lshape, jv.eG(1), dt0=0.1, stepsize_controller=ctrl)
 
 
 @pytest.mark.timeout(900)

@@ -65,8 +65,8 @@ def test_simulate_refuses_bad_options_before_compiling(scene):
 def test_old_keywords_are_deprecated_aliases_of_the_same_run(scene):
     """Each 0.1 keyword maps onto its option object: the same run, one DeprecationWarning
     naming the replacements; an old keyword with its replacement is refused."""
-    new = jv.simulate(scene, jv.eG(1), t1=0.4, stepsize_controller=jv.Schedule([(0.2, 0.1), (0.4, 0.2)], max_halvings=3),
-                      saveat=jv.SaveAt(every=2, gamma=True), event=jv.Equilibrium(1e-12),
+    new = jv.simulate(scene, jv.eG(1), t1=0.4,
+                      stepsize_controller=jv.Schedule([(0.2, 0.1), (0.4, 0.2)], max_halvings=3), saveat=jv.SaveAt(every=2, gamma=True), event=jv.Equilibrium(1e-12),
                       adjoint=jv.RecursiveCheckpointAdjoint(checkpoint_every=2), max_steps=8)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

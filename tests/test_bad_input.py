@@ -75,7 +75,7 @@ def test_scene_with_load_time_under_vmap_grad_jit():
 @pytest.mark.parametrize("dt, t_end, pattern", [
     ([(0.2, 0.1), (0.1, 0.05)], 0.3, r"schedule times must increase: piece 1 ends at t_until = 0.1 after piece 0 "
                                      r"ended at 0.2"),
-    ([(20.0, 0.1), (30.0, 1.0)], 40.0, r"the dt schedule ends at t = 30, before t_end = 40: extend its last piece "
+    ([(20.0, 0.1), (30.0, 1.0)], 40.0, r"the schedule ends at t = 30, before t1 = 40: extend its last piece "
                                        r"\(e.g. \(40, 1\)\), or give float\('inf'\)"),
     ([(float("inf"), 0.1), (3.0, 1.0)], 4.0, r"piece 0 has t_until = inf; accepted: finite times, and inf for the "
                                              r"last piece only"),
@@ -86,7 +86,7 @@ def test_bad_schedule(dt, t_end, pattern):
         jv.StepTo.from_schedule(0.0, t_end, dt)
     scene = jv.Scene(_square(), jv.NeoHooke(lam=1.0, mu=1.0), 1.0)
     with pytest.raises(ValueError, match=pattern):  # simulate checks before it compiles anything
-        jv.simulate(scene, jv.eG(1), t_end=t_end, dt=dt)
+        jv.simulate(scene, jv.eG(1), t1=t_end, stepsize_controller=jv.Schedule(dt))
 
 
 def test_schedule_times_exact():

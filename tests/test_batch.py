@@ -28,7 +28,7 @@ SCRIPT = textwrap.dedent(
     def run(eta_dev, vscale):
         sc = jv.with_parameters(scene, {"eta_dev": eta_dev})
         sc = eqx.tree_at(lambda s: s.v0, sc, vscale * sc.v0)
-        s = jv.simulate(sc, jv.eG(1), t_end=1.0, dt=0.1)
+        s = jv.simulate(sc, jv.eG(1), t1=1.0, dt0=0.1)
         return s.x, s.energy, s.dissipated, s.n_saved
 
     etas = jnp.array([2e4, 5e4, 1e5, 3e5])

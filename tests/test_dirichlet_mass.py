@@ -22,7 +22,7 @@ def _clamped_beam(mass="consistent"):
 @pytest.mark.parametrize("mass", ["consistent", "lumped"])
 def test_clamped_body_eG_balance_and_held_nodes(mass):
     scene, fixed = _clamped_beam(mass)
-    sol = jv.simulate(scene, jv.eG(1), t_end=3.0, dt=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    sol = jv.simulate(scene, jv.eG(1), t1=3.0, dt0=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
     x = np.asarray(sol.x)
     X = np.asarray(scene.mesh.points)
     assert np.max(np.abs(x[:, fixed] - X[fixed])) <= 1e-12
@@ -62,7 +62,7 @@ def test_dead_load_energy_balance_includes_external_work():
     load[X[:, 0] == 4.0, 1] = -0.5
     loaded = jv.Scene(scene.mesh, scene.material, scene.density, fixed=fixed, load=load,
                       load_time=lambda t: jnp.sin(2.0 * t))
-    sol = jv.simulate(loaded, jv.eG(2), t_end=2.0, dt=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    sol = jv.simulate(loaded, jv.eG(2), t1=2.0, dt0=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
     H, D, W = (np.asarray(a) for a in (sol.energy, sol.dissipated, sol.external_work))
     assert np.max(np.abs(W)) > 1e-3  # the load does work
     scale = np.max(np.abs(H))

@@ -31,8 +31,8 @@ def _loss_fn(scheme, checkpoint_every=None):
 
     def loss(theta):
         # A plain call: every run is differentiable (halving and early stop stay on).
-        sol = jv.simulate(_with(scene, theta), scheme, t_end=N_STEPS * H, dt=H, solver=SOLVER,
-                          checkpoint_every=checkpoint_every)
+        sol = jv.simulate(_with(scene, theta), scheme, t1=N_STEPS * H, dt0=H,
+                          adjoint=jv.RecursiveCheckpointAdjoint(checkpoint_every=checkpoint_every), solver=SOLVER)
         # Dissipated energy and final free energy (sensitive to both viscosities) and a
         # position functional (sensitive to the initial velocity).
         X = scene.x0
@@ -117,13 +117,13 @@ def test_forward_mode_equals_reverse_mode_and_checkpointing_changes_nothing():
     np.testing.assert_allclose(np.asarray(g5), np.asarray(g), rtol=1e-10)
 
 
-# `differentiable=True` no longer selects another loop (every run is the same loop), so
-# this compares a run with itself at save_every 1 and 2: out of CI (73 s).
+# There is one loop for every run, so this compares a run with itself at SaveAt(every=1)
+# and SaveAt(every=2): out of CI (73 s).
 @pytest.mark.slow
 def test_differentiable_run_equals_adaptive_run():
     scene = _scene()
-    a = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.25, solver=SOLVER)
-    b = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.25, solver=SOLVER, differentiable=True, save_every=2)
+    a = jv.simulate(scene, jv.eG(1), t1=2.0, dt0=0.25, solver=SOLVER)
+    b = jv.simulate(scene, jv.eG(1), t1=2.0, dt0=0.25, saveat=jv.SaveAt(every=2), solver=SOLVER)
     assert b.status == "done" and b.n_steps == 8
     np.testing.assert_allclose(b.t, a.t[::2], rtol=0, atol=1e-12)
     np.testing.assert_allclose(b.x, a.x[::2], rtol=0, atol=1e-9)
@@ -142,7 +142,7 @@ def test_gradient_of_a_run_that_halves_its_steps():
     scene = _scene()
 
     def run(theta):
-        return jv.simulate(_with(scene, theta), jv.eG(1), t_end=4.0, dt=2.0, solver=SOLVER)
+        return jv.simulate(_with(scene, theta), jv.eG(1), t1=4.0, dt0=2.0, solver=SOLVER)
 
     def loss(sol):
         return sol.dissipated[-1] + sol.free_energy[-1] + 1e-3 * jnp.mean((sol.x[-1] - scene.x0) ** 2)

@@ -40,7 +40,7 @@ import jaxvisco as jv
 jv.enable_compilation_cache(sys.argv[1])
 from jaxvisco import _export
 scene = jv.scenes.lshape(dim=2, refinement=1)
-sol = jv.simulate(scene, jv.eG(1), t_end=0.3, dt=0.1)
+sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1)
 run = [m for m in seen if "'jit__run'" in m or "'jit_exported__run'" in m]
 print("RESULT " + json.dumps(dict(log=run, x=float(abs(sol.x[-1]).sum()), H=float(sol.energy[-1]),
                                   export=_export.stats)))
@@ -106,7 +106,8 @@ SLOW_CASES = [(d, s, k, held) for d in (2, 3) for s in ("cG", "eG") for k in (1,
 def _compare(monkeypatch, dim, scheme, k, held):
     scene = _held_scene(dim) if held else jv.scenes.lshape(dim=dim, refinement=1)
     integrator = jv.eG(k) if scheme == "eG" else jv.cG(k)
-    a, b = _both_paths(monkeypatch, lambda: jv.simulate(scene, integrator, t_end=0.3, dt=0.1, save_gamma=True))
+    a, b = _both_paths(monkeypatch, lambda: jv.simulate(scene, integrator, t1=0.3, dt0=0.1,
+                                                        saveat=jv.SaveAt(gamma=True)))
     for key in ("x", "p", "gamma", "energy", "newton_iterations", "krylov_iterations"):
         np.testing.assert_array_equal(np.asarray(getattr(a, key)), np.asarray(getattr(b, key)), err_msg=key)
 
@@ -132,7 +133,7 @@ def test_ffi_gradient(monkeypatch):
 
     def loss(eta):
         sc = jv.with_parameters(scene, {"eta_dev": eta})
-        return jv.simulate(sc, jv.eG(1), t_end=0.2, dt=0.1, differentiable=True).dissipated[-1]
+        return jv.simulate(sc, jv.eG(1), t1=0.2, dt0=0.1).dissipated[-1]
 
     a, b = _both_paths(monkeypatch, lambda: jax.value_and_grad(loss)(5e4))
     assert float(a[0]) == float(b[0]) and float(a[1]) == float(b[1]) and float(a[1]) != 0.0

@@ -32,8 +32,8 @@ def test_identify_recovers_viscosities(tmp_path):
 def test_identify_rejects_bad_input():
     scene = jv.scenes.lshape(dim=2, refinement=1)
     with pytest.raises(ValueError, match="unknown parameter 'eta'"):
-        jv.identify(scene, jv.eG(1), lambda s: s.energy, np.ones(3), t_end=0.2, dt=0.1, initial={"eta": 1.0})
+        jv.identify(scene, jv.eG(1), lambda s: s.energy, np.ones(3), t1=0.2, dt0=0.1, initial={"eta": 1.0})
     with pytest.raises(ValueError, match="positive and finite"):
-        jv.identify(scene, jv.eG(1), lambda s: s.energy, np.ones(3), t_end=0.2, dt=0.1, initial={"eta_dev": -1.0})
+        jv.identify(scene, jv.eG(1), lambda s: s.energy, np.ones(3), t1=0.2, dt0=0.1, initial={"eta_dev": -1.0})
     with pytest.raises(ValueError, match="not all zero"):
-        jv.identify(scene, jv.eG(1), lambda s: s.energy, np.zeros(3), t_end=0.2, dt=0.1, initial={"eta_dev": 1.0})
+        jv.identify(scene, jv.eG(1), lambda s: s.energy, np.zeros(3), t1=0.2, dt0=0.1, initial={"eta_dev": 1.0})

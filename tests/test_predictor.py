@@ -61,6 +61,6 @@ def test_large_steps_paper_scene(k, max_newton):
     """The paper scene at h = 1 (0.6 rad per step): Newton iterations per step measured
     with the rigid-motion predictor (eG(1) 6.0, eG(3) 4.4 per step; with uniform motion
     9.5 and 9.0), no rejected step."""
-    sol = jv.simulate(jv.scenes.lshape(dim=2, refinement=1), jv.eG(k), t_end=10.0, dt=1.0)
+    sol = jv.simulate(jv.scenes.lshape(dim=2, refinement=1), jv.eG(k), t1=10.0, dt0=1.0)
     its = np.asarray(sol.newton_iterations)
     assert int(np.asarray(sol.rejections).sum()) == 0 and its.max() <= max_newton

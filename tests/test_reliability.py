@@ -106,15 +106,18 @@ def small_scene():
 
 
 @pytest.mark.parametrize("kw,exc,pattern", [
-    (dict(dt=0.0), ValueError, r"dt must be positive and finite, got dt = 0.0"),
-    (dict(dt=-0.1), ValueError, r"dt = -0.1"),
-    (dict(dt=float("nan")), ValueError, r"dt = nan"),
-    (dict(t_end=0.0), ValueError, r"t_end must be greater than t0 = 0.0, got t_end = 0.0"),
-    (dict(t_end=1.0, t0=2.0), ValueError, r"greater than t0 = 2.0"),
-    (dict(t_end=math.inf), ValueError, r"finite.*t_end=inf"),
-    (dict(t_end=2.0, dt=[(1.0, 0.1), (0.5, 0.1), (2.0, 0.1)]), ValueError, r"schedule times must increase"),
-    (dict(save_every=0), ValueError, r"save_every must be an integer >= 1, got 0"),
-    (dict(max_halvings=-1), ValueError, r"max_halvings must be an integer in \[0, 30\], got -1"),
+    (dict(dt0=0.0), ValueError, r"dt must be positive and finite, got dt = 0.0"),
+    (dict(dt0=-0.1), ValueError, r"dt = -0.1"),
+    (dict(dt0=float("nan")), ValueError, r"dt = nan"),
+    (dict(t1=0.0), ValueError, r"t1 must be greater than t0 = 0.0, got t1 = 0.0"),
+    (dict(t1=1.0, t0=2.0), ValueError, r"greater than t0 = 2.0"),
+    (dict(t1=math.inf), ValueError, r"finite.*t1=inf"),
+    # Option objects check their arguments when they are made (inside the test: lambdas).
+    (dict(saveat=lambda: jv.SaveAt(every=0)), ValueError, r"every must be an integer >= 1, got 0"),
+    (dict(t1=2.0, dt0=None, stepsize_controller=lambda: jv.Schedule([(1.0, 0.1), (0.5, 0.1), (2.0, 0.1)])),
+     ValueError, r"schedule times must increase"),
+    (dict(stepsize_controller=lambda: jv.ConstantStepSize(max_halvings=-1)), ValueError,
+     r"max_halvings must be an integer in \[0, 30\], got -1"),
     (dict(max_steps=2), ValueError, r"max_steps = 2 is less than the 10 steps"),
     (dict(integrator="eG"), TypeError, r"integrator must be cG\(k\), eG\(k\).*'eG'"),
     (dict(initial_velocity=np.zeros((3, 2))), ValueError, r"initial_velocity must have shape \(4, 2\), got \(3, 2\)"),
@@ -128,10 +131,11 @@ def test_simulate_rejects_bad_arguments(small_scene, kw, exc, pattern):
     if kw.get("initial_state") == "nan":
         s = small_scene.initial_state()
         kw["initial_state"] = jv.State(s.x, s.p.at[0, 0].set(jnp.nan), s.gamma)
-    args = dict(integrator=jv.eG(1), t_end=1.0, dt=0.1)
+    args = dict(integrator=jv.eG(1), t1=1.0, dt0=0.1)
     args.update(kw)
     integrator = args.pop("integrator")
     with pytest.raises(exc, match=pattern):
+        args = {k: v() if callable(v) and k in ("saveat", "stepsize_controller") else v for k, v in args.items()}
         jv.simulate(small_scene, integrator, **args)
 
 
@@ -222,7 +226,7 @@ def test_cli_bad_input_subprocess(tmp_path):
 def test_solver_failure_api():
     scene = jv.scenes.lshape(dim=2, refinement=1)
     with pytest.raises(jv.SolverError) as e:
-        jv.simulate(scene, jv.cG(1), t_end=12.0, dt=1.0, save_gamma=True, max_steps=12)
+        jv.simulate(scene, jv.cG(1), t1=12.0, dt0=1.0, saveat=jv.SaveAt(gamma=True), max_steps=12)
     err = e.value
     assert 1.0 <= err.t < 12.0 and f"{err.t:.6g}" in str(err)
     assert np.all(np.isfinite(err.state.x)) and np.all(np.isfinite(err.state.p))
@@ -323,8 +327,8 @@ def small_random_scene(shift, velocities, lam, mu, lam2, mu2, eta_dev, eta_vol, 
 
 
 def run_small(scene, dt, t0=0.0, n=N_STEPS, **kw):
-    return jv.simulate(scene, jv.eG(1), t_end=t0 + n * dt, dt=dt, t0=t0, solver=TIGHT, max_steps=N_STEPS,
-                       save_gamma=True, **kw)
+    return jv.simulate(scene, jv.eG(1), t0=t0, t1=t0 + n * dt, dt0=dt, saveat=jv.SaveAt(gamma=True), solver=TIGHT,
+                       max_steps=N_STEPS, **kw)
 
 
 def test_python_resume_equals_uninterrupted(tmp_path):
@@ -339,18 +343,17 @@ def test_python_resume_equals_uninterrupted(tmp_path):
     path = tmp_path / "half.h5"
     with ResultsWriter(path, scene.mesh, {"integrator": "eG(1)"}) as w:
         w.append(half, gamma=True)
-    rest = jv.resume(path, scene, jv.eG(1), t_end=N_STEPS * dt, dt=dt, solver=TIGHT, max_steps=N_STEPS,
-                     append=True)
+    rest = jv.resume(path, scene, jv.eG(1), t1=N_STEPS * dt, dt0=dt, solver=TIGHT, max_steps=N_STEPS, append=True)
     assert float(rest.t[0]) == float(half.t[-1]) and len(rest.t) == 3
     for k in ("x", "p", "gamma", "energy"):
         assert _rel(np.asarray(getattr(rest, k)), np.asarray(getattr(full, k))[2:]) <= 1e-12, k
     r = read_results(path)  # appended, cumulative dissipation continues across the restart
     assert len(r["t"]) == 5 and r["attrs"]["status"] == "done"
     assert _rel(r["dissipated"], full.dissipated) <= 1e-12 and _rel(r["p"], full.p) <= 1e-12
-    with pytest.raises(ValueError, match="t_end must be later than the file's last time"):
-        jv.resume(path, scene, jv.eG(1), t_end=0.1, dt=dt)
+    with pytest.raises(ValueError, match="t1 must be later than the file's last time"):
+        jv.resume(path, scene, jv.eG(1), t1=0.1, dt0=dt)
     with pytest.raises(TypeError, match="resume sets t0"):
-        jv.resume(path, scene, jv.eG(1), t_end=1.0, dt=dt, t0=0.0)
+        jv.resume(path, scene, jv.eG(1), t0=0.0, t1=1.0, dt0=dt)
 
 
 def test_cli_resume_errors(full_and_split, capsys):
@@ -508,8 +511,8 @@ def test_long_run_10000_steps():
     state, v, t, offset = None, None, 0.0, 0.0
     H, D, L, J, rss = [], [], [], [], []
     for c in range(n_chunks):
-        sol = jv.simulate(scene, jv.eG(1), t_end=t + chunk * dt, dt=dt, t0=t, save_every=10, max_steps=chunk,
-                          initial_state=state, initial_velocity=v, save_gamma=True, solver=LONG_RUN_SOLVER)
+        sol = jv.simulate(scene, jv.eG(1), t0=t, t1=t + chunk * dt, dt0=dt, saveat=jv.SaveAt(every=10, gamma=True),
+                          max_steps=chunk, initial_state=state, initial_velocity=v, solver=LONG_RUN_SOLVER)
         assert sol.status == "done" and int(sol.n_steps) == chunk
         s = 0 if c == 0 else 1
         H.append(np.asarray(sol.energy)[s:])

@@ -410,7 +410,7 @@ def test_save_any_scene_round_trip(tmp_path, make):
     from jaxvisco.cli import main
 
     scene = make()
-    sol = jv.simulate(scene, jv.eG(1), t_end=0.3, dt=0.1, save_gamma=True, max_steps=3)  # one compilation
+    sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, saveat=jv.SaveAt(gamma=True), max_steps=3)  # one compilation
     path = tmp_path / "run" / "s.h5"
     assert jv.save(sol, scene, path) == str(path)
     r = read_results(path)
@@ -432,7 +432,7 @@ def test_save_any_scene_round_trip(tmp_path, make):
             assert t == pytest.approx(0.1 * k)
             np.testing.assert_allclose(point_data["displacement"][:, :scene.dim], r["x"][k] - r["points"])
     assert main(["plot", str(path), "--out", str(tmp_path / "s.png")]) == 0
-    more = jv.resume(path, scene, jv.eG(1), t_end=0.5, dt=0.1, append=True, max_steps=3)
+    more = jv.resume(path, scene, jv.eG(1), t1=0.5, dt0=0.1, append=True, max_steps=3)
     assert more.status == "done"
     r2 = read_results(path)
     assert len(r2["t"]) == 6 and r2["t"][-1] == 0.5 and jv.read_restart(path).t == 0.5

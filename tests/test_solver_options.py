@@ -9,9 +9,9 @@ import jaxvisco as jv
 
 def test_lineax_gmres_backend_matches_default():
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    a = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.25)
+    a = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25)
     # chord=0: every step runs Newton–Krylov, so every step uses lineax's GMRES.
-    b = jv.simulate(scene, jv.eG(1), t_end=1.0, dt=0.25, solver=jv.NewtonKrylov(krylov="lineax", chord=0))
+    b = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25, solver=jv.NewtonKrylov(krylov="lineax", chord=0))
     assert b.status == "done" and int(b.n_steps) == 4
     assert np.all(b.krylov_iterations > 0)
     np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-8)
@@ -25,8 +25,8 @@ def test_chord_iterations_reach_the_newton_solution():
     iterations and end at the same steps (to the Newton tolerance), with eG's energy
     balance intact."""
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    a = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.1, solver=jv.NewtonKrylov(chord=0))
-    b = jv.simulate(scene, jv.eG(1), t_end=2.0, dt=0.1)
+    a = jv.simulate(scene, jv.eG(1), t1=2.0, dt0=0.1, solver=jv.NewtonKrylov(chord=0))
+    b = jv.simulate(scene, jv.eG(1), t1=2.0, dt0=0.1)
     assert a.status == b.status == "done"
     assert int(np.sum(a.chord_iterations)) == 0 and int(np.sum(b.chord_iterations)) > 0
     assert int(np.sum(b.newton_iterations)) < int(np.sum(a.newton_iterations))
@@ -70,6 +70,6 @@ def test_simulate_inside_a_trace_compiles_without_options():
     import jax
 
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    a = jv.simulate(scene, jv.eG(1), t_end=0.2, dt=0.1)
-    b = jax.jit(lambda s: jv.simulate(s, jv.eG(1), t_end=0.2, dt=0.1).x)(scene)
+    a = jv.simulate(scene, jv.eG(1), t1=0.2, dt0=0.1)
+    b = jax.jit(lambda s: jv.simulate(s, jv.eG(1), t1=0.2, dt0=0.1).x)(scene)
     np.testing.assert_allclose(np.asarray(b)[:3], np.asarray(a.x), rtol=0, atol=1e-10)

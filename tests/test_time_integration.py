@@ -32,8 +32,10 @@ def test_eG_energy_balance_and_momenta(lshape, k):
     # eG(2) paired Gamma' with a force its flow rule did not use and dissipated
     # -6.5e-3 H_0 in one step: D_n >= 0 must hold at any step size. Both runs share one
     # compiled program (same capacity max_steps).
-    runs = [jv.simulate(lshape, jv.eG(k), t_end=2.3, dt=[(0.3, 0.1), (2.3, 1.0)], solver=TIGHT, max_steps=5),
-            jv.simulate(lshape, jv.eG(k), t_end=12.0, dt=[(4.0, 2.0), (12.0, 4.0)], solver=TIGHT, max_steps=5)]
+    runs = [jv.simulate(lshape, jv.eG(k), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
+                        solver=TIGHT, max_steps=5),
+            jv.simulate(lshape, jv.eG(k), t1=12.0, stepsize_controller=jv.Schedule([(4.0, 2.0), (12.0, 4.0)]),
+                        solver=TIGHT, max_steps=5)]
     for sol, n in zip(runs, (6, 5)):
         assert sol.status == "done"
         H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
@@ -52,7 +54,7 @@ def test_eG_energy_balance_and_momenta(lshape, k):
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_cG_conserves_momenta(lshape, k):
-    sol = jv.simulate(lshape, jv.cG(k), t_end=0.5, dt=0.1, solver=TIGHT)
+    sol = jv.simulate(lshape, jv.cG(k), t1=0.5, dt0=0.1, solver=TIGHT)
     dP, dL = _momentum_drift(sol)
     assert dP <= 1e-10 and dL <= 1e-10, (dP, dL)
     # cG is not energy consistent: its balance error is not at rounding level.
@@ -64,7 +66,7 @@ def test_cG_conserves_momenta(lshape, k):
 def test_elastic_limit_eG_conserves_energy():
     scene = jv.scenes.lshape(dim=2, refinement=1, viscous=False)
     assert scene.initial_state().gamma is None  # nothing stored for Γ
-    sol = jv.simulate(scene, jv.eG(1), t_end=3.3, dt=[(0.3, 0.1), (3.3, 1.0)], solver=TIGHT)
+    sol = jv.simulate(scene, jv.eG(1), t1=3.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (3.3, 1.0)]), solver=TIGHT)
     H = np.asarray(sol.energy)
     assert sol.gamma is None
     assert np.max(np.abs(H - H[0])) <= 1e-9 * H[0]
@@ -82,7 +84,7 @@ def test_prestretched_body_relaxes_to_equilibrium_under_eG():
     mat = jv.ReeseGovindjee(nh, nh, eta_dev=10.0, eta_vol=50.0)
     x0 = mesh.points * jnp.array([1.1, 0.95])
     scene = jv.Scene(mesh, mat, 8.93, positions=x0)
-    sol = jv.simulate(scene, jv.eG(1), t_end=500.0, dt=1.0, solver=TIGHT, stop_at_equilibrium=1e-4)
+    sol = jv.simulate(scene, jv.eG(1), t1=500.0, dt0=1.0, event=jv.Equilibrium(1e-4), solver=TIGHT)
     H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
     assert sol.status == "equilibrium", (sol.status, H[-1])
     assert np.all(np.diff(H) <= 1e-12 * H[0])
@@ -94,6 +96,6 @@ def test_prestretched_body_relaxes_to_equilibrium_under_eG():
 
 @pytest.mark.timeout(300)
 def test_newmark_runs_and_conserves_linear_momentum(lshape):
-    sol = jv.simulate(lshape, jv.Newmark(), t_end=0.5, dt=0.1, solver=TIGHT)
+    sol = jv.simulate(lshape, jv.Newmark(), t1=0.5, dt0=0.1, solver=TIGHT)
     dP, _ = _momentum_drift(sol)
     assert sol.status == "done" and dP <= 1e-10
