@@ -75,7 +75,7 @@ def test_scene_with_load_time_under_vmap_grad_jit():
 @pytest.mark.parametrize("dt, t_end, pattern", [
     ([(0.2, 0.1), (0.1, 0.05)], 0.3, r"schedule times must increase: piece 1 ends at t_until = 0.1 after piece 0 "
                                      r"ended at 0.2"),
-    ([(20.0, 0.1), (30.0, 1.0)], 40.0, r"the schedule ends at t = 30, before t1 = 40: extend its last piece "
+    ([(20.0, 0.1), (30.0, 1.0)], 40.0, r"the dt schedule ends at t = 30, before t1 = 40: extend its last piece "
                                        r"\(e.g. \(40, 1\)\), or give float\('inf'\)"),
     ([(float("inf"), 0.1), (3.0, 1.0)], 4.0, r"piece 0 has t_until = inf; accepted: finite times, and inf for the "
                                              r"last piece only"),

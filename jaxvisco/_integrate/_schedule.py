@@ -105,10 +105,11 @@ class StepTo(AbstractFixedSteps):
         self._check_halvings()
 
     @classmethod
-    def from_schedule(cls, t0, t1, dt, max_halvings=6):
+    def from_schedule(cls, t0, t1, dt, max_halvings=6, t1_name="t1"):
         """The exact step times of a constant step or a list of ``(t_until, dt)`` pieces
-        (see `step_times`)."""
-        return cls(step_times(t0, t1, dt)[1], max_halvings)
+        (see `step_times`; `t1_name`: what error messages call `t1`, e.g. a scene file's
+        ``t_end``)."""
+        return cls(step_times(t0, t1, dt, t1_name)[1], max_halvings)
 
     def step_times(self, t0, t1, dt0):
         if dt0 is not None:
@@ -181,7 +182,7 @@ def _pieces(dt):
     return pieces
 
 
-def step_times(t0, t1, dt):
+def step_times(t0, t1, dt, t1_name="t1"):
     """Nominal step sizes and exact end times of a run from `t0` to `t1`.
 
     `dt` is a positive number (a constant step), a list of ``(t_until, dt)`` pairs in
@@ -190,24 +191,26 @@ def step_times(t0, t1, dt):
     any `t1`), or a `StepTo`. A piece whose length is not a multiple of its step is
     split into equal steps no longer than the given one.
 
+    `t1_name`: what error messages call `t1`.
+
     **Returns:** ``(hs, ts)``: `hs` (n,) the step sizes, `ts` (n + 1,) ``t0`` and the end
     time of every step.
     """
     if isinstance(dt, StepTo):
         ts = dt.ts
-        for name, value, ref in (("t0", t0, ts[0]), ("t1", t1, ts[-1])):
+        for name, value, ref in (("t0", t0, ts[0]), (t1_name, t1, ts[-1])):
             if value is not None and float(value) != float(ref):
                 raise ValueError(f"{name} = {value!r} disagrees with the StepTo times ({name} = {float(ref)!r}); give "
                                  f"{name}=None or the same time.")
         return np.diff(ts), np.array(ts)
     t0 = 0.0 if t0 is None else float(t0)
     if t1 is None:
-        raise ValueError("t1 is required unless the steps are a StepTo.")
+        raise ValueError(f"{t1_name} is required unless the steps are a StepTo.")
     t1 = float(t1)
     if not np.isfinite(t0) or not np.isfinite(t1):
-        raise ValueError(f"t0 and t1 must be finite, got t0={t0!r}, t1={t1!r}.")
+        raise ValueError(f"t0 and {t1_name} must be finite, got t0={t0!r}, {t1_name}={t1!r}.")
     if t1 <= t0:
-        raise ValueError(f"t1 must be greater than t0 = {t0}, got t1 = {t1}.")
+        raise ValueError(f"{t1_name} must be greater than t0 = {t0}, got {t1_name} = {t1}.")
     pieces = _pieces(dt)
     if pieces is None:
         h = float(dt)
@@ -216,9 +219,9 @@ def step_times(t0, t1, dt):
         pieces = [(math.inf, h)]
     last = pieces[-1][0]
     if last < t1 and not math.isclose(last, t1, rel_tol=1e-12, abs_tol=0.0):
-        raise ValueError(f"the schedule ends at t = {last:g}, before t1 = {t1:g}: extend its last piece "
+        raise ValueError(f"the dt schedule ends at t = {last:g}, before {t1_name} = {t1:g}: extend its last piece "
                          f"(e.g. ({t1:g}, {pieces[-1][1]:g})), or give float('inf') as its t_until to continue "
-                         "the last step to any t1.")
+                         f"the last step to any {t1_name}.")
     hs, ts = [], [t0]
     start = t0
     for until, h in pieces:

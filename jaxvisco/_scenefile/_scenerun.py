@@ -69,7 +69,7 @@ class RunReader:
                 dt = tuple((float(a), float(b)) for a, b in s)
                 t_end = t.number("t_end", dt[-1][0], positive=True)
             try:
-                steps = StepTo.from_schedule(0.0, t_end, dt)
+                steps = StepTo.from_schedule(0.0, t_end, dt, t1_name="t_end")
             except ValueError as e:
                 raise t.error("schedule" if t.has("schedule") else "dt", str(e)) from None
         max_halvings = t.integer("max_halvings", 6, minimum=0, maximum=30)
