@@ -126,3 +126,26 @@ def test_only_cli_imports_cli():
     bad = sorted(f"{m} -> {t}" for m, p in MODULES.items() if not (m == "jaxvisco.cli" or m.startswith("jaxvisco.cli."))
                  for t in _imports(m, p) if t == "jaxvisco.cli" or t.startswith("jaxvisco.cli."))
     assert not bad, "modules outside jaxvisco/cli/ importing it:\n  " + "\n  ".join(bad)
+
+
+def test_every_equinox_class_is_abstract_or_final():
+    """equinox's convention: a Module class is either abstract (named Abstract*, never
+    instantiated) or final (never subclassed); behaviour is shared by abstract bases,
+    never by overriding a concrete class."""
+    import importlib
+    import inspect
+
+    import equinox as eqx
+
+    classes = set()
+    for name in MODULES:
+        if name == "jaxvisco.cli" or name.startswith("jaxvisco.cli."):
+            continue
+        module = importlib.import_module(name)
+        classes |= {c for _, c in inspect.getmembers(module, inspect.isclass)
+                    if issubclass(c, eqx.Module) and c.__module__.startswith("jaxvisco")}
+    assert len(classes) > 20  # the walk found them
+    subclassed = sorted(c.__qualname__ for c in classes if c.__subclasses__() and not c.__name__.startswith("Abstract"))
+    assert not subclassed, "concrete equinox classes with subclasses: " + ", ".join(subclassed)
+    unused = sorted(c.__qualname__ for c in classes if c.__name__.startswith("Abstract") and not c.__subclasses__())
+    assert not unused, "abstract equinox classes without a subclass: " + ", ".join(unused)
