@@ -31,9 +31,12 @@ def test_eG_energy_balance_and_momenta(lshape, k):
     # 2 and 4 (1.2 and 2.4 rad per step, far beyond tau_vol = 0.29), where an earlier
     # eG(2) paired Gamma' with a force its flow rule did not use and dissipated
     # -6.5e-3 H_0 in one step: D_n >= 0 must hold at any step size. Both runs share one
-    # compiled program (same capacity max_steps).
-    runs = [jv.simulate(lshape, jv.eG(k), t_end=2.3, dt=[(0.3, 0.1), (2.3, 1.0)], solver=TIGHT, max_steps=5),
-            jv.simulate(lshape, jv.eG(k), t_end=12.0, dt=[(4.0, 2.0), (12.0, 4.0)], solver=TIGHT, max_steps=5)]
+    # compiled program (same capacity max_steps), and other files' runs of the same
+    # scheme, scene and solver share it too: capacity 128 for eG(1) (the 100-step runs of
+    # test_gradients), 32 for eG(3) (the 30-step run of test_ode).
+    cap = {1: 128, 2: 5, 3: 32}[k]
+    runs = [jv.simulate(lshape, jv.eG(k), t_end=2.3, dt=[(0.3, 0.1), (2.3, 1.0)], solver=TIGHT, max_steps=cap),
+            jv.simulate(lshape, jv.eG(k), t_end=12.0, dt=[(4.0, 2.0), (12.0, 4.0)], solver=TIGHT, max_steps=cap)]
     for sol, n in zip(runs, (6, 5)):
         assert sol.status == "done"
         H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
