@@ -9,7 +9,9 @@ import jaxvisco as jv
 
 def test_lineax_gmres_backend_matches_default():
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    a = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25)
+    # max_steps=24: the capacity of the 20-step default runs below, so that the default
+    # solver's runs of this file share one compiled program.
+    a = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25, max_steps=24)
     # chord=0: every step runs Newton–Krylov, so every step uses lineax's GMRES.
     b = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25, solver=jv.NewtonKrylov(krylov="lineax", chord=0))
     assert b.status == "done" and int(b.n_steps) == 4
@@ -70,6 +72,6 @@ def test_simulate_inside_a_trace_compiles_without_options():
     import jax
 
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    a = jv.simulate(scene, jv.eG(1), t1=0.2, dt0=0.1)
+    a = jv.simulate(scene, jv.eG(1), t1=0.2, dt0=0.1, max_steps=24)  # the program of the tests above
     b = jax.jit(lambda s: jv.simulate(s, jv.eG(1), t1=0.2, dt0=0.1).x)(scene)
     np.testing.assert_allclose(np.asarray(b)[:3], np.asarray(a.x), rtol=0, atol=1e-10)

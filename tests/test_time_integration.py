@@ -31,11 +31,15 @@ def test_eG_energy_balance_and_momenta(lshape, k):
     # 2 and 4 (1.2 and 2.4 rad per step, far beyond tau_vol = 0.29), where an earlier
     # eG(2) paired Gamma' with a force its flow rule did not use and dissipated
     # -6.5e-3 H_0 in one step: D_n >= 0 must hold at any step size. Both runs share one
-    # compiled program (same capacity max_steps).
+    # compiled program (same capacity max_steps), and other files' runs of the same
+    # scheme, scene and solver share it too: capacity 128 for eG(1) (the 100-step runs of
+    # test_gradients), 192 for eG(2) (the 150-step reference of test_adaptive's
+    # test_dense_output), 32 for eG(3) (the 30-step run of test_ode).
+    cap = {1: 128, 2: 192, 3: 32}[k]
     runs = [jv.simulate(lshape, jv.eG(k), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
-                        solver=TIGHT, max_steps=5),
+                        solver=TIGHT, max_steps=cap),
             jv.simulate(lshape, jv.eG(k), t1=12.0, stepsize_controller=jv.Schedule([(4.0, 2.0), (12.0, 4.0)]),
-                        solver=TIGHT, max_steps=5)]
+                        solver=TIGHT, max_steps=cap)]
     for sol, n in zip(runs, (6, 5)):
         assert sol.status == "done"
         H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
