@@ -121,7 +121,12 @@ def identify(scene, integrator, observe: Callable, data, t1=None, dt0=None, init
     opt = default_optimizer() if optimizer is None else optimizer
     static = _Static(tuple(names), integrator, observe, _Run.of(t0, t1, dt0, stepsize_controller, saveat), solver, opt)
     z = jnp.log(jnp.asarray([float(initial[n]) for n in names]))
-    state = opt.init(z)
+    # The first iteration's inputs typed like the step's outputs, which the next ones
+    # pass back: optax's L-BFGS state starts with a weakly typed counter
+    # (num_linesearch_steps), and jit compiled the whole step a second time for the
+    # strongly typed one it returns (60 s of a 3-iteration identification, measured).
+    state = jax.tree_util.tree_map(lambda a: jax.lax.convert_element_type(a, a.dtype) if eqx.is_array(a) else a,
+                                   opt.init(z))
     step = functools.partial(_step, static)
     history, zs = [], []
     converged, message = False, f"stopped after max_iterations = {max_iterations}"
