@@ -71,7 +71,9 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
       rounded up to the next of 8, 12, 16, 24, 32, 48, ... (runs of 100 and 120 steps share
       one program, in memory and in the persistent cache; called under a JAX
       transformation, the number of steps). `PIDController`: accepted steps (default
-      4096); a run that needs more ends with ``status == "max_steps"``.
+      4096); a run that needs more ends with ``status == "max_steps"``. A derivative
+      replays every slot of the capacity (and in reverse mode keeps each one's frame
+      values), so differentiate adaptive runs with a `max_steps` near their need.
     - `throw`: raise `SolverError` on failure (else return with ``status == "failed"``).
     - `initial_state`: start from this `State` instead of the scene's (restarts);
       `initial_velocity`: the predictor's velocity for the first step (default: the
