@@ -58,12 +58,12 @@ def _fixed_steps(args, schedule_origin, restart):
                                  f"add a piece that reaches it, e.g. '{args.schedule},{t_end:g}:{dt[-1][1]:g}'.")
             dt[-1] = (math.inf, dt[-1][1])  # --resume --t-end: the last step continues
         try:
-            steps = jv.StepTo.from_schedule(0.0, t_end, dt, t1_name="--t-end")
+            steps = jv.StepTo.from_schedule(0.0, t_end, dt, t1_name="t_end")
         except ValueError as e:
             raise ValueError(f"{schedule_name}: {e}") from None
     else:
         t_end = 1.0 if args.t_end is None else args.t_end
-        steps = jv.StepTo.from_schedule(0.0, t_end, 0.1 if args.dt is None else args.dt, t1_name="--t-end")
+        steps = jv.StepTo.from_schedule(0.0, t_end, 0.1 if args.dt is None else args.dt, t1_name="t_end")
     return steps, t_end
 
 
