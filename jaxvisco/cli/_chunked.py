@@ -141,3 +141,18 @@ def run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=None, chu
     state = jv.State(np.asarray(state.x), np.asarray(state.p), None if state.gamma is None else np.asarray(state.gamma))
     return dict(status=status, steps=n, newton=newton, wall=time.perf_counter() - start, state=state, t_last=t,
                 h_last=h)
+
+
+def run_into(writer, go):
+    """`go()` (a chunked run writing to `writer`) and its result; `writer` is closed with
+    the run's status, also when `go` fails ("failed") or is interrupted ("interrupted")."""
+    status = "failed"
+    try:
+        r = go()
+        status = r["status"]
+    except KeyboardInterrupt:
+        status = "interrupted"
+        raise
+    finally:
+        writer.close(status=status)
+    return r

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 
 from ._checks import _warn_energy
-from ._chunked import chunk_size, run_chunked
+from ._chunked import chunk_size, run_chunked, run_into
 
 PAPER_T = 60.0
 QUICK_T = 24.0
@@ -50,15 +50,8 @@ def _paper(args):
             attrs = dict(scene="lshape", refinement=1, integrator=integrator.describe(),
                          parameters=dict(schedule=schedule if sched_name == "schedule" else [(T, 1.0)], t_end=T))
             w = jv.ResultsWriter(path, scene, attrs, overwrite=args.overwrite)
-            status = "failed"
-            try:
-                r = run_chunked(scene, integrator, steps, chunk=c, writer=w, label=label, quiet=args.quiet)
-                status = r["status"]
-            except KeyboardInterrupt:
-                status = "interrupted"
-                raise
-            finally:
-                w.close(status=status)
+            r = run_into(w, lambda: run_chunked(scene, integrator, steps, chunk=c, writer=w, label=label,
+                                                quiet=args.quiet))
             saved = jv.read_results(path)
             r.update(t=saved["t"], energy=saved["energy"])
             results.append((scheme_name, sched_name, r))

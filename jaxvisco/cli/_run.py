@@ -10,7 +10,7 @@ import sys
 import numpy as np
 
 from ._checks import _warn_energy
-from ._chunked import chunk_size, run_adaptive_chunked, run_chunked
+from ._chunked import chunk_size, run_adaptive_chunked, run_chunked, run_into
 from ._options import _resume_args, _run_setup, _scene_file_options
 from ._setup import parse_schedule
 
@@ -115,17 +115,12 @@ def _run_adaptive(args, sf, restart):
 def _write_run(args, integrator, w, go):
     """Run `go(should_stop)` into the open writer `w`, close it with the run's status
     (also when interrupted or failing), and report."""
-    status = "failed"
-    try:
+    def run():
         with _StopOnSigint(args.quiet) as stop:
-            r = go(stop)
-        status = r["status"]
-    except KeyboardInterrupt:
-        status = "interrupted"
-        raise
-    finally:
-        w.close(status=status)
-    return _report(args, integrator, status, r)
+            return go(stop)
+
+    r = run_into(w, run)
+    return _report(args, integrator, r["status"], r)
 
 
 class _StopOnSigint:
