@@ -175,7 +175,8 @@ class _Run(eqx.Module):
     def of(cls, t0, t1, dt0, ctrl, saveat):
         saveat = SaveAt() if saveat is None else saveat
         if isinstance(ctrl, PIDController):
-            return cls(t0, t1, dt0, None, 0, ctrl, saveat)
+            num = lambda v: None if v is None else float(v)  # noqa: E731 (static fields: hashable numbers)
+            return cls(num(t0), num(t1), num(dt0), None, 0, ctrl, saveat)
         ctrl = ConstantStepSize() if ctrl is None else ctrl
         if not isinstance(ctrl, AbstractFixedSteps):
             raise TypeError(f"stepsize_controller must be ConstantStepSize(), Schedule(...), StepTo(ts) or "
