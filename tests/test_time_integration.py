@@ -1,5 +1,7 @@
 """Time integration: the identities that define the schemes (THEORY §3)."""
 
+import pathlib
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ import jaxvisco as jv
 # by up to ~10 r relative on the L-shape (measured 1.05e-10 in one h = 1 step at
 # rtol 1e-11, 3.3e-13 at 1e-12), so the 1e-10 checks below run at 1e-12.
 TIGHT = jv.NewtonKrylov(rtol=1e-12)
+DATA = pathlib.Path(__file__).parent / "data"
 
 
 @pytest.fixture(scope="module")
@@ -103,3 +106,42 @@ def test_newmark_runs_and_conserves_linear_momentum(lshape):
     sol = jv.simulate(lshape, jv.Newmark(), t1=0.5, dt0=0.1, solver=TIGHT)
     dP, _ = _momentum_drift(sol)
     assert sol.status == "done" and dP <= 1e-10
+
+
+# The runs of tests/data/make_loop_reference.py, on the API of 0.2: capacities as in the
+# tests above and test_gradients (padding changes no result), so these runs reuse those
+# compiled programs.
+LOOP_REFERENCE_RUNS = {
+    "eG1": lambda s: jv.simulate(s, jv.eG(1), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
+                                 solver=TIGHT, max_steps=128),
+    "eG2": lambda s: jv.simulate(s, jv.eG(2), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
+                                 solver=TIGHT, max_steps=192),
+    "eG1_halved": lambda s: jv.simulate(s, jv.eG(1), t1=4.0, dt0=2.0, solver=TIGHT, max_steps=128),
+    "cG1": lambda s: jv.simulate(s, jv.cG(1), t1=0.5, dt0=0.1, solver=TIGHT),
+    "cG2": lambda s: jv.simulate(s, jv.cG(2), t1=0.5, dt0=0.1, solver=TIGHT),
+    "Midpoint": lambda s: jv.simulate(s, jv.Midpoint(), t1=0.5, dt0=0.1, solver=TIGHT),
+    "Newmark": lambda s: jv.simulate(s, jv.Newmark(), t1=0.5, dt0=0.1, solver=TIGHT),
+}
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("name", list(LOOP_REFERENCE_RUNS))
+def test_forward_results_equal_the_loop_before_issue_17(lshape, name):
+    """The one time loop of 0.2 gives the results of 0.1's forward loop (stored in
+    tests/data/loop_reference.npz by make_loop_reference.py at 0e7253e) for every
+    integrator, with and without step halving: frames, energies, momenta to the Newton
+    tolerance (rtol 1e-12 per step, 1e-9 relative to each field's scale after the steps),
+    and the same rejected attempts."""
+    ref = np.load(DATA / "loop_reference.npz")
+    sol = LOOP_REFERENCE_RUNS[name](lshape)
+    assert sol.status == "done"
+    np.testing.assert_array_equal(np.asarray(sol.rejections), ref[f"{name}/rejections"])
+    np.testing.assert_array_equal(np.asarray(sol.t), ref[f"{name}/t"])
+    for field in ("x", "p", "energy", "dissipated", "linear_momentum", "angular_momentum"):
+        a, b = np.asarray(getattr(sol, field)), ref[f"{name}/{field}"]
+        scale = np.max(np.abs(b))
+        if field == "dissipated":
+            scale = np.max(np.abs(ref[f"{name}/energy"]))  # D starts at 0: measure it against H
+        err = np.max(np.abs(a - b)) / scale
+        print(f"{name} {field}: {err:.1e}")
+        assert err <= 1e-9, (field, err)
