@@ -1,5 +1,5 @@
-"""Derivatives of default `simulate` calls for every kind of run: jax.jvp for the eG(2)
-and cG(1) time elements (step halving on) and for an error-controlled run
+"""Derivatives of default `simulate` calls for every kind of run: jax.jvp and jax.grad for
+the eG(2) and cG(1) time elements (step halving on), jax.jvp for an error-controlled run
 (differentiated along its accepted steps), each against 4th-order central differences
 of plain runs. The runs are short: what is checked is that every part of the loop is
 differentiated, not the accumulation over many steps (`test_gradients`: 100 steps)."""
@@ -59,6 +59,19 @@ def test_jvp_of_a_default_call_matches_finite_differences(scheme):
     assert abs(d - fd) <= 1e-6 * abs(fd), (d, fd)
 
 
+@pytest.mark.parametrize("scheme", [jv.eG(2), jv.cG(1)], ids=["eG2", "cG1"])
+def test_grad_of_a_default_call_matches_finite_differences(scheme):
+    """Reverse mode (`jax.grad`) of the same call. One compiled program: its value is the
+    plain run, so the finite-difference points are calls of the same program."""
+    def f(theta):
+        return _observe(jv.simulate(_scene(theta), scheme, t1=0.6, dt0=0.1, solver=SOLVER))
+
+    value_and_grad = eqx.filter_jit(jax.value_and_grad(f))
+    d = float(value_and_grad(THETA)[1] @ DIRECTION)
+    fd = _fd(value_and_grad(t)[0] for t in _points())
+    assert abs(d - fd) <= 1e-6 * abs(fd), (d, fd)
+
+
 def test_adaptive_call_differentiates_along_its_accepted_steps():
     ctrl = jv.PIDController(rtol=1e-4, atol=1e-4)
 
@@ -78,3 +91,4 @@ def test_adaptive_call_differentiates_along_its_accepted_steps():
 
     fd = _fd(jax.lax.map(eqx.filter_jit(along), jnp.stack(_points())))
     assert abs(float(d) - fd) <= 1e-6 * abs(fd), (float(d), fd)
+
