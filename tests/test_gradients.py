@@ -71,9 +71,9 @@ def _jvp(scheme):
 
 
 # eG(2) (414 s of a 51-minute local suite on 2026-12-01) and cG(1) (134 s of the 31-minute CI
-# run of session 10, which went over its 30 minutes) run under -m slow; eG(1) keeps the
-# reverse-mode identity in CI (cG and eG share the loop and the implicit step derivative,
-# which uses the step Jacobian that test_tangent checks exact for cG(2)).
+# run of session 10, which went over its 30 minutes) run under -m slow over 100 steps; in CI,
+# eG(1) keeps the 100-step reverse-mode identity and test_derivatives checks jax.grad of
+# 6-step eG(2) and cG(1) calls.
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("scheme", [pytest.param(jv.cG(1), marks=pytest.mark.slow), jv.eG(1),
                                     pytest.param(jv.eG(2), marks=pytest.mark.slow)],
