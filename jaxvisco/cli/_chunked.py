@@ -73,11 +73,8 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
                           saveat=jv.SaveAt(every=save_every, gamma=True), solver=solver, initial_state=state,
                           throw=False, initial_velocity=v, max_steps=chunk)
         per_step = (time.perf_counter() - t_call) / m  # the first call also compiles: an overestimate
-        if writer is not None:
-            writer.append(sol, skip_first=True, gamma=save_gamma)
-        ns = int(len(np.asarray(sol.step_t)))
+        ns, its = _commit(writer, sol, save_gamma)
         i += ns
-        its = np.asarray(sol.newton_iterations)
         newton += int(its.sum())
         state, v = sol.state(-1), sol.end_velocity
         H = float(np.asarray(sol.energy)[-1])
@@ -90,8 +87,7 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
         if should_stop is not None and should_stop() and i < n:
             status = "interrupted"
             break
-    state = jv.State(np.asarray(state.x), np.asarray(state.p), None if state.gamma is None else np.asarray(state.gamma))
-    return dict(status=status, steps=i, newton=newton, wall=time.perf_counter() - start, state=state,
+    return dict(status=status, steps=i, newton=newton, wall=time.perf_counter() - start, state=_on_host(state),
                 t_last=float(ts[i]) if status != "failed" else float(np.asarray(sol.t)[-1]))
 
 
@@ -118,11 +114,8 @@ def run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=None, chu
         sol = jv.simulate(scene, integrator, t, t_end, h, saveat=jv.SaveAt(every=save_every, gamma=True), solver=solver,
                           initial_state=state, throw=False, initial_velocity=v, max_steps=chunk,
                           stepsize_controller=controller)
-        if writer is not None:
-            writer.append(sol, skip_first=True, gamma=save_gamma)
-        ns = int(len(np.asarray(sol.step_t)))
+        ns, its = _commit(writer, sol, save_gamma)
         n += ns
-        its = np.asarray(sol.newton_iterations)
         newton += int(its.sum())
         rejected += int(np.asarray(sol.rejections).sum())
         if ns:
@@ -138,9 +131,23 @@ def run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=None, chu
         if should_stop is not None and should_stop():
             status = "interrupted"
             break
-    state = jv.State(np.asarray(state.x), np.asarray(state.p), None if state.gamma is None else np.asarray(state.gamma))
-    return dict(status=status, steps=n, newton=newton, wall=time.perf_counter() - start, state=state, t_last=t,
+    return dict(status=status, steps=n, newton=newton, wall=time.perf_counter() - start, state=_on_host(state), t_last=t,
                 h_last=h)
+
+
+def _commit(writer, sol, save_gamma):
+    """Append a chunk's frames after its first (the previous chunk's last) to `writer`
+    (if any). Returns the chunk's number of steps and its Newton iterations per step."""
+    if writer is not None:
+        writer.append(sol, skip_first=True, gamma=save_gamma)
+    return int(len(np.asarray(sol.step_t))), np.asarray(sol.newton_iterations)
+
+
+def _on_host(state):
+    """A `State` of numpy arrays."""
+    import jaxvisco as jv
+
+    return jv.State(np.asarray(state.x), np.asarray(state.p), None if state.gamma is None else np.asarray(state.gamma))
 
 
 def run_into(writer, go):
