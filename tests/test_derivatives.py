@@ -92,3 +92,29 @@ def test_adaptive_call_differentiates_along_its_accepted_steps():
     fd = _fd(jax.lax.map(eqx.filter_jit(along), jnp.stack(_points())))
     assert abs(float(d) - fd) <= 1e-6 * abs(fd), (float(d), fd)
 
+
+def test_dense_output_differentiates_inside_its_steps():
+    """SaveAt(ts): frames inside steps (two in one step, one at a step's end, one at t0)
+    are the steps' time polynomials, differentiated with them. The controller's loose
+    tolerance and dtmax pin every step to 0.1 whatever theta (asserted), so finite
+    differences of the plain run see the same steps as the derivative."""
+    ctrl = jv.PIDController(rtol=1.0, atol=1.0, dtmin=0.05, dtmax=0.1)
+    ts = jnp.array([0.0, 0.05, 0.1, 0.23, 0.27, 0.6])
+    weights = jnp.array([0.3, 1.0, -0.7, 0.9, 1.3, -0.4])
+
+    def f(theta):
+        sol = jv.simulate(_scene(theta), jv.eG(1), t1=0.6, dt0=0.1, stepsize_controller=ctrl,
+                          saveat=jv.SaveAt(ts=ts), solver=SOLVER, max_steps=8)
+        per_frame = (sol.dissipated + sol.energy + jnp.sum(sol.p**2, axis=(1, 2))
+                     + jnp.sum((sol.x - BASE.x0) ** 2, axis=(1, 2)))
+        return jnp.dot(weights, per_frame), (sol.step_h, sol.n_steps)
+
+    jvp = eqx.filter_jit(lambda t: jax.jvp(f, (t,), (DIRECTION,), has_aux=True))
+    _, d, (step_h, n) = jvp(THETA)
+    values = []
+    for t in _points():
+        v, _, (step_h, n) = jvp(t)
+        np.testing.assert_allclose(np.asarray(step_h)[: int(n)], 0.1, rtol=1e-12)
+        values.append(v)
+    fd = _fd(values)
+    assert abs(float(d) - fd) <= 1e-6 * abs(fd), (float(d), fd)

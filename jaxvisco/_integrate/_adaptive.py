@@ -20,7 +20,13 @@ from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent
 from .._time_element._estimate import dense_state, scaled_error
 from .._time_element._step import make_context, predictor, step_outcome
-from ._differentiable import differentiate, empty_record, record_frame, record_substep
+from ._differentiable import (
+    differentiate,
+    empty_record,
+    record_dense_frame,
+    record_frame,
+    record_substep,
+)
 from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
 from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
 
@@ -49,9 +55,6 @@ def _loop(scene, state0, v0, **kw):
 
 @_loop.def_jvp
 def _loop_jvp(primals, tangents, *, segment, **kw):
-    if kw["ts_out"] is not None:
-        raise ValueError("an adaptive run with SaveAt(ts) (dense output) cannot be differentiated yet: its frames are "
-                         "interpolated inside steps. Save at the accepted steps (SaveAt(every=n)) instead.")
     sol, h, rec = _probe(*primals, **kw)
     sol, t_sol = differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"],
                                use_v0=kw["use_v0"], save_gamma=kw["save_gamma"], segment=segment)
@@ -79,17 +82,21 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
     end_eps = 1e-12 * jnp.maximum(jnp.abs(t1), jnp.abs(t0)) + 1e-300
     max_attempts = 16 * capacity
 
-    def dense_frames(frames, ptr, ctx, U, t_next, D_before, D, W_before, W):
+    def dense_frames(frames, rec, ptr, ctx, U, t_next, D_before, D, W_before, W):
+        """Write the frames at the requested times up to `t_next` from the accepted step's
+        polynomial, noting for the derivative which step and where (`rec`: the step is
+        its last sub-step)."""
         def cond(c):
-            return (c[1] < n_frames) & (ts_out[jnp.minimum(c[1], n_frames - 1)] <= t_next)
+            return (c[2] < n_frames) & (ts_out[jnp.minimum(c[2], n_frames - 1)] <= t_next)
 
         def body(c):
-            f, j = c
+            f, rec, j = c
             s = jnp.clip((ts_out[j] - ctx.t0) / ctx.h, 0.0, 1.0)
             st = dense_state(scheme, scene, ctx, U, s)
-            return write_frame(f, j, ts_out[j], st, scene.diagnostics(st), D_before + s * D, W_before + s * W), j + 1
+            f = write_frame(f, j, ts_out[j], st, scene.diagnostics(st), D_before + s * D, W_before + s * W)
+            return f, record_dense_frame(rec, j, rec.n - 1, s), j + 1
 
-        return jax.lax.while_loop(cond, body, (frames, ptr))
+        return jax.lax.while_loop(cond, body, (frames, rec, ptr))
 
     def cond(c):
         return (c["status"] == RUNNING) & (c["attempts"] < max_attempts)
@@ -126,9 +133,10 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
             rec = record_frame(rec, c["n_saved"], accept & save)
 
         def on_accept(c):
+            rec = c["rec"]
             if dense:
-                frames, n_saved = dense_frames(c["frames"], c["n_saved"], ctx, r.U, t_next, c["dissipated"], D,
-                                               c["work"], W)
+                frames, rec, n_saved = dense_frames(c["frames"], rec, c["n_saved"], ctx, r.U, t_next,
+                                                    c["dissipated"], D, c["work"], W)
             else:
                 frames = jax.lax.cond(
                     save, lambda f: write_frame(f, c["n_saved"], t_next, new, scene.diagnostics(new), dissipated, work),
@@ -143,18 +151,18 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                          rejections=s["rejections"].at[i].set(c["rej"]))
             return dict(i=i + 1, state=new, t=t_next, v=v_end, frames=frames, steps=steps, n_saved=n_saved,
                         dissipated=dissipated, work=work, err1=err, err2=c["err1"], its=jnp.asarray(0),
-                        kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0))
+                        kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0), rec=rec)
 
         def on_reject(c):
             return dict(i=i, state=c["state"], t=t, v=c["v"], frames=c["frames"], steps=c["steps"],
                         n_saved=c["n_saved"], dissipated=c["dissipated"], work=c["work"], err1=c["err1"],
                         err2=c["err2"], its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
-                        chord=c["chord"] + r.chord_iterations, rej=c["rej"] + 1)
+                        chord=c["chord"] + r.chord_iterations, rej=c["rej"] + 1, rec=c["rec"])
 
         keys = ("i", "state", "t", "v", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2", "its",
                 "kits", "chord", "rej")
-        out = jax.lax.cond(accept, on_accept, on_reject, {k: c[k] for k in keys})
-        out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1, rec=rec)
+        out = jax.lax.cond(accept, on_accept, on_reject, dict({k: c[k] for k in keys}, rec=rec))
+        out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1)
         return out
 
     zf, zi = jnp.zeros(capacity), jnp.zeros(capacity, dtype=int)
@@ -165,7 +173,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                 v=jnp.where(use_v0, v0, scene.velocity(state0.p)), tan=empty_tangent(scheme, scene), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
                 status=jnp.asarray(RUNNING), err1=one, err2=one, its=zero, kits=zero, chord=zero, rej=zero,
-                attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float)))
+                attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))
     c = jax.lax.while_loop(cond, body, init)
     status = jnp.where(c["status"] == RUNNING, FAILED, c["status"])  # attempts exhausted
     return Solution(**frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["i"], status_code=status,

@@ -29,6 +29,7 @@ raises an error at run time instead of returning a wrong derivative.
 
 import dataclasses
 import math
+from typing import Optional
 
 import equinox as eqx
 import jax
@@ -36,6 +37,7 @@ import jax.numpy as jnp
 
 from .._solver._implicit import materialize_zeros, solve_step_implicit
 from .._solver._tangent import empty_tangent
+from .._time_element._estimate import polynomial_state, step_polynomial
 from .._time_element._step import make_context, predictor, step_outcome
 from ._frames import frame_values
 
@@ -43,12 +45,15 @@ from ._frames import frame_values
 class Record(eqx.Module):
     """What the loop writes for its derivative: start time `t` and size `h` of each of
     its `n` accepted sub-steps, and per saved frame the index of the sub-step whose end
-    state it holds (`frame_slot`, -1 for the initial frame and unused frames)."""
+    state it holds (`frame_slot`, -1 for the initial state and unused frames). Dense
+    output (`SaveAt(ts)`): `frame_s`, where in its sub-step each frame lies (a fraction
+    of the sub-step, a constant of the derivative like the step sizes); None: at its end."""
 
     t: jax.Array
     h: jax.Array
     n: jax.Array
     frame_slot: jax.Array
+    frame_s: Optional[jax.Array] = None
 
 
 def record_size(n_slots):
@@ -57,23 +62,30 @@ def record_size(n_slots):
     return n_slots + max(16, n_slots // 4)
 
 
-def empty_record(size, n_frames, dtype):
-    """A `Record` with room for `size` accepted sub-steps and `n_frames` frames."""
+def empty_record(size, n_frames, dtype, dense=False):
+    """A `Record` with room for `size` accepted sub-steps and `n_frames` frames (inside
+    sub-steps if `dense`)."""
     return Record(t=jnp.zeros(size, dtype), h=jnp.ones(size, dtype), n=jnp.asarray(0),
-                  frame_slot=jnp.full(n_frames, -1))
+                  frame_slot=jnp.full(n_frames, -1), frame_s=jnp.zeros(n_frames, dtype) if dense else None)
 
 
 def record_substep(rec, t, h, ok):
     """`rec` with the sub-step from `t` of size `h` written at slot `rec.n`, which it
     takes if it was accepted (`ok`); a rejected attempt is overwritten by the next."""
     return Record(t=rec.t.at[rec.n].set(t, mode="drop"), h=rec.h.at[rec.n].set(h, mode="drop"),
-                  n=rec.n + ok.astype(int), frame_slot=rec.frame_slot)
+                  n=rec.n + ok.astype(int), frame_slot=rec.frame_slot, frame_s=rec.frame_s)
 
 
 def record_frame(rec, frame, save):
     """`rec` noting that frame `frame` holds the last accepted sub-step (when `save`)."""
     slot = jnp.where(save, rec.n - 1, rec.frame_slot[jnp.minimum(frame, rec.frame_slot.shape[0] - 1)])
     return eqx.tree_at(lambda r: r.frame_slot, rec, rec.frame_slot.at[frame].set(slot, mode="drop"))
+
+
+def record_dense_frame(rec, frame, slot, s):
+    """`rec` noting that frame `frame` lies at the fraction `s` of the sub-step `slot`."""
+    return eqx.tree_at(lambda r: (r.frame_slot, r.frame_s), rec,
+                       (rec.frame_slot.at[frame].set(slot, mode="drop"), rec.frame_s.at[frame].set(s, mode="drop")))
 
 
 def segment_length(n_slots, save_every=1, checkpoint_every=None):
@@ -87,9 +99,11 @@ def segment_length(n_slots, save_every=1, checkpoint_every=None):
 def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     """Re-run the recorded sub-steps; differentiable in `scene`, `state0` and `v0`.
 
-    Returns the initial frame's values, every sub-step's frame values (leading axis: the
-    record's slots), the end velocity and whether a replayed sub-step failed."""
+    Returns the initial frame's values, every frame's values (leading axis: the record's
+    frames; the sub-step end `rec.frame_slot` holds, or with `rec.frame_s` the sub-step's
+    time polynomial there), the end velocity and whether a replayed sub-step failed."""
     size = rec.t.shape[0]
+    dense = rec.frame_s is not None
     seg = min(segment, size)
     # A backward sweep needs the factorizations of a whole segment at once (one per
     # sub-step for the derivative, a few more for Newton when the segment is re-run).
@@ -102,16 +116,26 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     fresh = empty_tangent(scheme, scene)
     dtype = state0.p.dtype
 
+    def attempt(c, t, h):
+        ctx = make_context(scene, c["state"], t, h)
+        r = solve_step_implicit(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), fresh)
+        new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
+        out = dict(state=new, v=v_end, D=c["D"] + D, W=c["W"] + W, failed=c["failed"] | ~ok)
+        # Dense output: the sub-step's polynomial and its energies, to be evaluated inside.
+        poly = dict(poly=step_polynomial(scheme, scene, ctx, r.U), D0=c["D"], W0=c["W"], D=D, W=W) if dense else None
+        return out, poly
+
     def substep(c, inp):
         t, h, k = inp
 
-        def attempt(c):
-            ctx = make_context(scene, c["state"], t, h)
-            r = solve_step_implicit(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), fresh)
-            new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
-            return dict(state=new, v=v_end, D=c["D"] + D, W=c["W"] + W, failed=c["failed"] | ~ok)
+        def skip(c):
+            if not dense:
+                return c, None
+            return c, jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(lambda: attempt(c, t, h)[1]))
 
-        c = jax.lax.cond(k < rec.n, attempt, lambda c: c, c)
+        c, poly = jax.lax.cond(k < rec.n, lambda c: attempt(c, t, h), skip, c)
+        if dense:
+            return c, poly
         return c, frame_values(c["state"], scene.diagnostics(c["state"]), c["D"], c["W"], save_gamma)
 
     @jax.checkpoint
@@ -123,23 +147,30 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     c, ys = jax.lax.scan(run_segment, init, (ts, hs, idx))
     ys = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:size], ys)
     first = frame_values(state0, scene.diagnostics(state0), jnp.zeros((), dtype), jnp.zeros((), dtype), save_gamma)
-    return first, ys, c["v"], c["failed"]
+    slot = jnp.clip(rec.frame_slot, 0, size - 1)
+    if dense:
+        def at(k, s):
+            y = jax.tree_util.tree_map(lambda a: a[k], ys)
+            st = polynomial_state(scheme, y["poly"], s)
+            return frame_values(st, scene.diagnostics(st), y["D0"] + s * y["D"], y["W0"] + s * y["W"], save_gamma)
+
+        frames = jax.vmap(at)(slot, rec.frame_s)
+    else:
+        frames = jax.tree_util.tree_map(lambda y: y[slot], ys)
+    return first, frames, c["v"], c["failed"]
 
 
-def frame_tangents(rec, n_saved, first, ys):
-    """The frames' tangents from the replay's: frame 0 from the initial state, frame j
-    from the sub-step `rec.frame_slot[j]`, zero for unused frames."""
-    n_frames = rec.frame_slot.shape[0]
-    slot = jnp.clip(rec.frame_slot, 0, rec.t.shape[0] - 1)
-    j = jnp.arange(n_frames)
+def frame_tangents(rec, n_saved, first, frames):
+    """The frames' tangents from the replay's: the initial state's for frames before the
+    first sub-step (`rec.frame_slot` -1), zero for unused frames."""
+    j = jnp.arange(rec.frame_slot.shape[0])
 
-    def pick(f0, y):
-        g = y[slot]
-        mask = (j < n_saved).reshape((-1,) + (1,) * (g.ndim - 1))
-        g = jnp.where(mask, g, 0.0)
-        return g.at[0].set(f0)
+    def pick(f0, g):
+        shape = (-1,) + (1,) * (g.ndim - 1)
+        g = jnp.where((rec.frame_slot < 0).reshape(shape), f0[None], g)
+        return jnp.where((j < n_saved).reshape(shape), g, 0.0)
 
-    return {k: pick(first[k], ys[k]) for k in ys}
+    return {k: pick(first[k], frames[k]) for k in frames}
 
 
 def check_replay(rec, failed, value):
@@ -162,10 +193,10 @@ def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_g
         return replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment)
 
     out, d_out = eqx.filter_jvp(fn, primals, tangents)
-    d_first, d_ys, d_v = materialize_zeros(d_out[:3], out[:3])
+    d_first, d_frames, d_v = materialize_zeros(d_out[:3], out[:3])
     # The checks sit on the primal output, which every derivative evaluates.
     sol = check_replay(rec, out[3], sol)
-    frames = frame_tangents(rec, sol.n_saved, d_first, d_ys)
+    frames = frame_tangents(rec, sol.n_saved, d_first, d_frames)
     t_sol = jax.tree_util.tree_map(lambda _: None, sol)
     names = [k for k in frames if getattr(sol, k) is not None]
     t_sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names] + [s.end_velocity], t_sol,

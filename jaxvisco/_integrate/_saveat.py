@@ -14,7 +14,9 @@ class SaveAt(eqx.Module):
       (`PIDController`) only: a frame at a time inside a step is the step's own time
       polynomial there (dense output: positions, momenta and internal variable; no step
       is shortened to hit it); `dissipated` and `external_work` are exact at step ends
-      and linear in time within a step.
+      and linear in time within a step. Differentiated, a frame follows its step's
+      polynomial (where in the step it lies is a constant of the derivative, like the
+      step sizes).
     - `every`: without `ts`, keep every `every`-th step (default 1; the initial state and
       the last step are always kept). With fixed steps a step is a nominal step (its
       halvings are inside it); with a `PIDController`, an accepted step.

@@ -117,16 +117,27 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol):
     return err
 
 
-def dense_state(scheme, scene, ctx, U, sigma):
-    """The step's polynomial at `t_n + sigma h` (`sigma` in [0, 1], traced): a `State`."""
+def step_polynomial(scheme, scene, ctx, U):
+    """The step's time polynomial, as `dense_state` evaluates it: the start positions and
+    the nodal values (`nodal_values`)."""
+    return (ctx.state.x,) + nodal_values(scheme, scene, ctx, U)
+
+
+def polynomial_state(scheme, poly, sigma):
+    """A `step_polynomial` at `t_n + sigma h` (`sigma` in [0, 1], traced): a `State`."""
     from .._scene import State
 
-    X, P, G = nodal_values(scheme, scene, ctx, U)
+    x0, X, P, G = poly
     nodes = lobatto_nodes(scheme.k)
     ell = jnp.stack([jnp.prod(jnp.stack([(sigma - nodes[j]) / (nodes[i] - nodes[j])
                                          for j in range(len(nodes)) if j != i] or [jnp.ones_like(sigma)]))
                      for i in range(len(nodes))])
-    x = ctx.state.x + jnp.einsum("I,Ind->nd", ell, X)
+    x = x0 + jnp.einsum("I,Ind->nd", ell, X)
     p = jnp.einsum("I,Ind->nd", ell, P)
     g = None if G is None else jnp.einsum("I,I...->...", ell, G)
     return State(x, p, g)
+
+
+def dense_state(scheme, scene, ctx, U, sigma):
+    """The step's polynomial at `t_n + sigma h` (`sigma` in [0, 1], traced): a `State`."""
+    return polynomial_state(scheme, step_polynomial(scheme, scene, ctx, U), sigma)
