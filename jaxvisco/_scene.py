@@ -244,9 +244,10 @@ class Scene(eqx.Module):
         F = self.disc.deformation_gradient(x)
         return self.disc.force(F @ self.stress(x, gamma))
 
-    def diagnostics(self, state: State) -> dict:
-        """Kinetic and free energy, H, dissipation rate, linear and angular momentum."""
-        kin = self.kinetic_energy(state.p)
+    def diagnostics(self, state: State, velocity=None) -> dict:
+        """Kinetic and free energy, H, dissipation rate, linear and angular momentum.
+        `velocity`: $M^{-1}p$ where the caller has it already (default: solved here)."""
+        kin = self.kinetic_energy(state.p) if velocity is None else 0.5 * jnp.vdot(state.p, velocity)
         free = self.free_energy(state.x, state.gamma)
         return dict(
             kinetic=kin,

@@ -95,7 +95,10 @@ def mass_solve(matvec, diag, b, rtol, max_steps=500):
     reverse-differentiated, so `jax.grad` of anything holding a kinetic energy failed.
     ``throw=False``: lineax's failure check is a host callback, which would keep the
     time loop out of JAX's persistent cache; the scaled mass converges well within
-    `max_steps`.
+    `max_steps`. No periodic recomputation of the residual (lineax's `stabilise_every`):
+    the scaled mass is well conditioned, the residual stays within 1e-13 of `b` without it
+    (`test_mass_solve`, 2D and 3D), and each site in a compiled loop is smaller (the
+    time loop of the 2D L-shape: 27 204 against 27 470 optimized HLO lines).
     """
     d = jax.lax.rsqrt(diag)
     Db = d * b
@@ -103,5 +106,6 @@ def mass_solve(matvec, diag, b, rtol, max_steps=500):
     s = jnp.where(s > 0, s, 1.0)
     op = lx.FunctionLinearOperator(lambda w: d * matvec(d * w), jax.eval_shape(lambda: Db),
                                    tags=lx.positive_semidefinite_tag)
-    w = lx.linear_solve(op, Db / s, lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps), throw=False).value
+    cg = lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps, stabilise_every=None)
+    w = lx.linear_solve(op, Db / s, cg, throw=False).value
     return s * d * w

@@ -66,7 +66,8 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
     """The loop itself: the `Solution`, the next step size and the `Record` of its
     accepted steps."""
     order = scheme.k + 1
-    diag0 = scene.diagnostics(state0)
+    v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
+    diag0 = scene.diagnostics(state0, v_state0)
     H0 = diag0["energy"]
     dense = ts_out is not None
     n_frames = ts_out.shape[0] if dense else 1 + -(-capacity // save_every)
@@ -170,7 +171,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                  residual=zf, rejections=zi)
     one, zero = jnp.asarray(1.0), jnp.asarray(0)
     init = dict(i=zero, state=state0, t=jnp.asarray(t0, float), h=jnp.clip(h0, ctrl.dtmin, ctrl.dtmax),
-                v=jnp.where(use_v0, v0, scene.velocity(state0.p)), tan=empty_tangent(scheme, scene), frames=frames,
+                v=jnp.where(use_v0, v0, v_state0), tan=empty_tangent(scheme, scene), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
                 status=jnp.asarray(RUNNING), err1=one, err2=one, its=zero, kits=zero, chord=zero, rej=zero,
                 attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))

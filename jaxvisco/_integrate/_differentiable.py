@@ -142,11 +142,12 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     def run_segment(c, inp):
         return jax.lax.scan(substep, c, inp)
 
-    v_init = jnp.where(use_v0, v0, scene.velocity(state0.p))
+    v_state0 = scene.velocity(state0.p)
+    v_init = jnp.where(use_v0, v0, v_state0)
     init = dict(state=state0, v=v_init, D=jnp.zeros((), dtype), W=jnp.zeros((), dtype), failed=jnp.asarray(False))
     c, ys = jax.lax.scan(run_segment, init, (ts, hs, idx))
     ys = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:size], ys)
-    first = frame_values(state0, scene.diagnostics(state0), jnp.zeros((), dtype), jnp.zeros((), dtype), save_gamma)
+    first = frame_values(state0, scene.diagnostics(state0, v_state0), jnp.zeros((), dtype), jnp.zeros((), dtype), save_gamma)
     slot = jnp.clip(rec.frame_slot, 0, size - 1)
     if dense:
         def at(k, s):

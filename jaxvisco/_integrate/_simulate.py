@@ -272,7 +272,8 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
            use_v0):
     """The loop itself: a `Solution` and the `Record` of its accepted sub-steps."""
     n_frames = 1 + -(-hs.shape[0] // save_every)
-    diag0 = scene.diagnostics(state0)
+    v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
+    diag0 = scene.diagnostics(state0, v_state0)
     H0 = diag0["energy"]
     full = 2**max_halvings
 
@@ -345,7 +346,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
     zeros_f, zeros_i = jnp.zeros(hs.shape[0]), jnp.zeros(hs.shape[0], dtype=int)
     steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i, chord_iterations=zeros_i,
                  residual=zeros_f, rejections=zeros_i)
-    v_init = jnp.where(use_v0, v0, scene.velocity(state0.p))
+    v_init = jnp.where(use_v0, v0, v_state0)
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene),
                 frames=frames, steps=steps, rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype),
                 n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
