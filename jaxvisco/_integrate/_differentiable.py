@@ -11,7 +11,8 @@ differentiated, its rule
 2. replays those sub-steps (`replay`) in nested `lax.scan`s, segments under
    `jax.checkpoint` -> sub-steps, each step differentiated implicitly
    (`solve_step_implicit`: one linear solve with the converged tangent; Newton is never
-   differentiated), and returns the replay's tangents at the frames' sub-steps.
+   differentiated), and returns the replay's tangents at the frames' sub-steps (dense
+   output, `SaveAt(ts)`: of the sub-steps' time polynomials where the frames lie).
 
 Step sizes are constants of the derivative (as in diffrax). The replay's primal equals
 the loop's to the Newton tolerance; it starts every sub-step from a fresh tangent, so
@@ -147,7 +148,8 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     init = dict(state=state0, v=v_init, D=jnp.zeros((), dtype), W=jnp.zeros((), dtype), failed=jnp.asarray(False))
     c, ys = jax.lax.scan(run_segment, init, (ts, hs, idx))
     ys = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:])[:size], ys)
-    first = frame_values(state0, scene.diagnostics(state0, v_state0), jnp.zeros((), dtype), jnp.zeros((), dtype), save_gamma)
+    zero = jnp.zeros((), dtype)
+    first = frame_values(state0, scene.diagnostics(state0, v_state0), zero, zero, save_gamma)
     slot = jnp.clip(rec.frame_slot, 0, size - 1)
     if dense:
         def at(k, s):
