@@ -61,7 +61,7 @@ def part(name, dim, refinement, scheme_name, mass):
         def fn(c, u, t):
             _, jvp = jax.linearize(lambda w: res(c, w), u)
             precond = lambda r: schur_solve(scheme, scene, c, t, r, jnp.eye(scene.dim))  # noqa: E731
-            return gmres(jvp, precond, u, 1e-6, solver.krylov_max_steps)[0]
+            return gmres(jvp, precond, u, 1e-6, solver.linear_solver.max_steps)[0]
         args = (ctx, U, tan)
     elif name == "solve_step":
         fn, args = (lambda c, u, t: solve_step(solver, scheme, scene, c, u, t)), (ctx, U, tan)

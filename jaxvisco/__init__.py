@@ -54,6 +54,9 @@ from ._scene import Scene as Scene
 from ._scene import State as State
 from ._scenefile._scenefile import SceneFile as SceneFile
 from ._scenefile._scenefile import read_scene_file as read_scene_file
+from ._solver._linear import GMRES as GMRES
+from ._solver._linear import AbstractLinearSolver as AbstractLinearSolver
+from ._solver._linear import Direct as Direct
 from ._solver._newton import NewtonKrylov as NewtonKrylov
 from ._time_element._time_element import (
     AbstractTimeElement as AbstractTimeElement,

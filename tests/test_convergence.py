@@ -25,7 +25,7 @@ T = 0.8
 # either linear solver. Direct solves make the eG(1) runs the program of
 # test_reliability's small-body runs (same mesh shape, solver, SaveAt and capacity 64), so
 # the suite compiles it once.
-SOLVER = jv.NewtonKrylov(linear_solver="direct", rtol=1e-12)
+SOLVER = jv.NewtonKrylov(linear_solver=jv.Direct(), rtol=1e-12)
 # Steps in the asymptotic range (measured: cG(1)'s Γ error is pre-asymptotic above h = 0.05).
 STEPS = {1: (0.05, 0.025, 0.0125), 2: (0.2, 0.1, 0.05), 3: (0.4, 0.2, 0.1)}
 

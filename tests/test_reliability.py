@@ -318,7 +318,7 @@ def test_restart_group_after_resume(full_and_split):
 # is also the program of test_convergence's eG(1) runs (same mesh shape, solver and
 # SaveAt; measured: the second of them compiles nothing), one compilation (40-60 s) less.
 BASE = jv.rectangle(2, 1, lx=2.0, ly=1.0)
-TIGHT = jv.NewtonKrylov(linear_solver="direct", rtol=1e-12)
+TIGHT = jv.NewtonKrylov(linear_solver=jv.Direct(), rtol=1e-12)
 N_STEPS = 4
 CAPACITY = 64
 

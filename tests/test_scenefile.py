@@ -346,13 +346,23 @@ def test_scene_file_keys(tmp_path):
     u = np.asarray(s.held_positions(0.5)) - X
     np.testing.assert_allclose(u[right], np.broadcast_to([0.05, 0.0, -0.1], (right.sum(), 3)), atol=1e-15)
     assert not u[~right].any()
-    assert sf.solver.rtol == 1e-12 and sf.solver.linear_solver == "direct" and sf.solver.chord == 0
+    assert sf.solver.rtol == 1e-12 and sf.solver.linear_solver == jv.Direct() and sf.solver.chord == 0
     assert sf.integrator.name == "cG(2)" and sf.t_end == 1.5 and len(sf.steps) == 9
     # the elastic form: no viscosity, one branch and no internal variable; "inf" as text
     elastic = text.replace("eta_dev = 10.0", 'eta_vol = "inf"').replace("[material.nonequilibrium]\nlam = 2000.0\n"
                                                                        "mu = 100.0\n", "")
     (tmp_path / "e.toml").write_text(elastic)
     assert not read_scene_file(tmp_path / "e.toml").scene.has_internal_variable
+
+
+def test_solver_keys_set_the_gmres(tmp_path):
+    """[solver]'s krylov, krylov_max_steps and refresh_after (file keys of 0.1) fill
+    NewtonKrylov's GMRES."""
+    text = KEYS_TEXT.replace('linear_solver = "direct"', 'linear_solver = "krylov"\nkrylov = "lineax"\n'
+                             'krylov_max_steps = 30\nrefresh_after = 2', 1)
+    (tmp_path / "g.toml").write_text(text)
+    solver = read_scene_file(tmp_path / "g.toml").solver
+    assert solver.linear_solver == jv.GMRES(max_steps=30, refresh_after=2, backend="lineax") and solver.rtol == 1e-12
 
 
 @pytest.mark.parametrize("old,new,message", [
@@ -362,6 +372,12 @@ def test_scene_file_keys(tmp_path):
     ("displacement = [0.1, 0.0, -0.2]\n", "", "[[dirichlet]] 2: time: a time function needs a `displacement`"),
     ("rtol = 1e-12", "rtoll = 1e-12", "[solver]: unknown key 'rtoll'; accepted: rtol, max_iterations"),
     ("rtol = 1e-12", "rtol = 2.0", "[solver]: rtol must lie in (0, 1), got 2.0."),
+    ('linear_solver = "direct"', 'linear_solver = "krylov"\nkrylov = "cg"',
+     "[solver]: krylov must be one of ('gmres', 'lineax'), got 'cg'."),
+    ("chord = 0", "chord = 0\nrefresh_after = 2",
+     "[solver]: krylov, krylov_max_steps and refresh_after set the Krylov solver, but linear_solver = 'direct'."),
+    ('linear_solver = "direct"', 'linear_solver = "lu"',
+     "[solver]: linear_solver must be GMRES(...), Direct() or one of ('krylov', 'direct'), got 'lu'."),
     ('name = "cg"\norder = 2', 'name = "Newmark"\norder = 2', "[integrator]: order: Newmark has no order"),
     ("eta_dev = 10.0", "eta_dev = 10.0\nlam = 1.0", "[material]: lam: give lam/mu or [material.equilibrium], not"),
     ("[material.nonequilibrium]\nlam = 2000.0\nmu = 100.0\n", "",

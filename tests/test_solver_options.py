@@ -13,7 +13,7 @@ def test_lineax_gmres_backend_matches_default():
     # solver's runs of this file share one compiled program.
     a = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25, max_steps=24)
     # chord=0: every step runs Newton–Krylov, so every step uses lineax's GMRES.
-    b = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25, solver=jv.NewtonKrylov(krylov="lineax", chord=0))
+    b = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.25, solver=jv.NewtonKrylov(linear_solver=jv.GMRES(backend="lineax"), chord=0))
     assert b.status == "done" and int(b.n_steps) == 4
     assert np.all(b.krylov_iterations > 0)
     np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-8)
@@ -47,8 +47,33 @@ def test_bad_chord_options_are_rejected(kwargs, match):
 
 
 def test_unknown_krylov_method_is_rejected():
-    with pytest.raises(ValueError, match="krylov must be one of"):
+    with pytest.raises(ValueError, match="krylov must be one of"), pytest.warns(DeprecationWarning):
         jv.NewtonKrylov(krylov="cg")
+    with pytest.raises(ValueError, match=r"GMRES: backend must be one of \('jaxvisco', 'lineax'\), got 'cg'"):
+        jv.GMRES(backend="cg")
+
+
+def test_linear_solvers_are_objects_and_the_strings_of_0_1_still_work():
+    """NewtonKrylov(linear_solver=GMRES(...) | Direct()); "krylov"/"direct" name the same
+    objects (so the same compiled programs); the keywords krylov, krylov_max_steps and
+    refresh_after are deprecated aliases of GMRES's fields."""
+    assert jv.NewtonKrylov().linear_solver == jv.GMRES(max_steps=60, refresh_after=5, backend="jaxvisco")
+    assert jv.NewtonKrylov(linear_solver="krylov") == jv.NewtonKrylov()
+    assert jv.NewtonKrylov(linear_solver="direct") == jv.NewtonKrylov(linear_solver=jv.Direct())
+    assert hash(jv.NewtonKrylov(linear_solver="direct")) == hash(jv.NewtonKrylov(linear_solver=jv.Direct()))
+    with pytest.warns(DeprecationWarning, match=r"write NewtonKrylov\(linear_solver=GMRES"):
+        old = jv.NewtonKrylov(krylov="lineax", krylov_max_steps=30, refresh_after=2)
+    assert old.linear_solver == jv.GMRES(max_steps=30, refresh_after=2, backend="lineax")
+    with pytest.raises(TypeError, match="refresh_after set.* GMRES, but linear_solver is Direct"), \
+            pytest.warns(DeprecationWarning):
+        jv.NewtonKrylov(linear_solver=jv.Direct(), refresh_after=3)
+    for bad in ("lu", 3, jv.GMRES):
+        with pytest.raises(ValueError, match=r"linear_solver must be GMRES\(...\), Direct\(\) or one of"):
+            jv.NewtonKrylov(linear_solver=bad)
+    for kwargs, match in [(dict(max_steps=0), "max_steps must be an integer >= 1"),
+                          (dict(refresh_after=-1), "refresh_after must be an integer >= 0")]:
+        with pytest.raises(ValueError, match=match):
+            jv.GMRES(**kwargs)
 
 
 def test_compiler_options_follow_the_environment(monkeypatch):

@@ -3,10 +3,15 @@
 tables, read into the integrator, the `NewtonKrylov` solver, the steps and the output
 options of a `SceneFile`."""
 
-import dataclasses
 import os
 
 _INTEGRATORS = {"cg": "cG", "eg": "eG", "newmark": "Newmark", "midpoint": "Midpoint"}
+# [solver]: NewtonKrylov's settings (linear_solver "krylov" or "direct") and, for "krylov",
+# those of its GMRES (the file keys of jaxvisco 0.1, kept: krylov = "gmres" or "lineax").
+_SOLVER_KEYS = dict(rtol=float, max_iterations=int, linear_solver=str, krylov=str, krylov_max_steps=int,
+                    refresh_after=int, line_search=int, reuse_limit=int, chord=int, chord_contraction=float,
+                    retain=int)
+_GMRES_KEYS = dict(krylov="backend", krylov_max_steps="max_steps", refresh_after="refresh_after")
 
 
 class RunReader:
@@ -15,6 +20,7 @@ class RunReader:
 
     def run_options(self):
         from .._integrate._schedule import StepTo
+        from .._solver._linear import GMRES
         from .._solver._newton import NewtonKrylov
         from .._time_element._time_element import Midpoint, Newmark, cG, eG
 
@@ -28,14 +34,22 @@ class RunReader:
             raise t.error("order", f"{_INTEGRATORS[key]} has no order; it applies to cG and eG.")
         integrator = {"cg": lambda: cG(order), "eg": lambda: eG(order), "newmark": Newmark, "midpoint": Midpoint}[key]()
 
-        fields = {f.name: f.default for f in dataclasses.fields(NewtonKrylov)}
-        t = self.table("solver", tuple(fields), required=False)
+        t = self.table("solver", tuple(_SOLVER_KEYS), required=False)
         kw = {}
-        for k, default in fields.items():
+        for k, kind in _SOLVER_KEYS.items():
             if t.has(k):
-                kw[k] = t.string(k) if isinstance(default, str) else t.number(k) if isinstance(default, float) \
-                    else t.integer(k, minimum=0)
+                kw[k] = t.string(k) if kind is str else t.number(k) if kind is float else t.integer(k, minimum=0)
+        gmres = {_GMRES_KEYS[k]: kw.pop(k) for k in tuple(kw) if k in _GMRES_KEYS}
         try:
+            if "backend" in gmres:
+                if gmres["backend"] not in ("gmres", "lineax"):
+                    raise ValueError(f"krylov must be one of ('gmres', 'lineax'), got {gmres['backend']!r}.")
+                gmres["backend"] = {"gmres": "jaxvisco"}.get(gmres["backend"], gmres["backend"])
+            if gmres:
+                if kw.get("linear_solver", "krylov") != "krylov":
+                    raise ValueError(f"krylov, krylov_max_steps and refresh_after set the Krylov solver, but "
+                                     f"linear_solver = {kw['linear_solver']!r}.")
+                kw["linear_solver"] = GMRES(**gmres)
             solver = NewtonKrylov(**kw)
         except ValueError as e:
             raise ValueError(f"{self.name}: [solver]: {e}") from None

@@ -101,10 +101,10 @@ time = { type = "step", at = 1.0, before = 1.0, after = 0.0 }
 name = "eG"                  # cG, eG (energy-consistent), Newmark or Midpoint
 order = 1                    # polynomial degree k of cG(k) / eG(k)
 
-# [solver]                   # optional: Newton settings (jaxvisco.NewtonKrylov's keywords)
+# [solver]                   # optional: Newton settings (jaxvisco.NewtonKrylov, its GMRES)
 # rtol = 1e-10               # also: max_iterations, linear_solver ("krylov"/"direct"),
-#                            # krylov, krylov_max_steps, refresh_after, line_search,
-#                            # reuse_limit, chord, chord_contraction
+#                            # krylov ("gmres"/"lineax"), krylov_max_steps, refresh_after,
+#                            # line_search, reuse_limit, chord, chord_contraction
 
 [time]
 t_end = 3.0                  # final time (default: the schedule's last time)

@@ -15,7 +15,7 @@ along the body's rigid rotation; forcing terms after Eisenstat–Walker with Kel
 safeguard; a backtracking line search on the scaled residual norm. The tangent is formed
 when none fits (first step, new step size, failed step) and re-formed when the Krylov
 solver needed many iterations or the line search had to backtrack, so one factorization
-serves many iterations and steps. `linear_solver="direct"` instead forms the tangent at
+serves many iterations and steps. `linear_solver=Direct()` instead forms the tangent at
 every iteration and takes the exact Newton step with it (no Krylov): the robust choice
 for stiff regimes.
 """
@@ -27,11 +27,9 @@ import lineax as lx
 
 from .._fem._krylov import gmres
 from .._time_element._step import residual
+from ._linear import GMRES, AbstractLinearSolver, Direct, from_legacy
 from ._sparse import RETAIN
 from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
-
-_LINEAR_SOLVERS = ("krylov", "direct")
-_KRYLOV = ("gmres", "lineax")
 
 
 class NewtonKrylov(eqx.Module):
@@ -46,14 +44,12 @@ class NewtonKrylov(eqx.Module):
       momentum over its first 1000 steps at 1e-10 and ~1e-13 at 1e-12 (about 25 % more
       iterations), the setting for long runs.
     - `max_iterations`: Newton iterations before the step counts as failed (20).
-    - `linear_solver`: `"krylov"` (GMRES with the condensed-tangent preconditioner,
-      default) or `"direct"` (exact Newton steps with a fresh sparse factorization).
-    - `krylov`: `"gmres"` (default: jaxvisco's right-preconditioned GMRES, which checks
-      the residual after every Arnoldi step) or `"lineax"` (lineax's `GMRES`, restarted
-      every 5 vectors; it checks convergence once per restart cycle and needs two
-      cycles, so it costs more Krylov vectors: see `_krylov`).
-    - `krylov_max_steps`: GMRES iterations per Newton iteration (60).
-    - `refresh_after`: re-form the tangent once GMRES needed more iterations than this (5).
+    - `linear_solver`: `GMRES(max_steps=60, refresh_after=5, backend="jaxvisco")` (the
+      default: GMRES with the condensed-tangent preconditioner) or `Direct()` (exact
+      Newton steps with a fresh sparse factorization); see `_linear`. The strings
+      ``"krylov"`` and ``"direct"`` mean `GMRES()` and `Direct()`; the keywords `krylov`,
+      `krylov_max_steps` and `refresh_after` of jaxvisco 0.1 are deprecated aliases of
+      `GMRES`'s `backend` (``"gmres"`` is ``"jaxvisco"``), `max_steps`, `refresh_after`.
     - `line_search`: backtracking halvings allowed per iteration (8; 0 disables it).
     - `reuse_limit`: keep the tangent for the next step only if this step needed at most
       this many Newton iterations (20: only a failed step discards it). The tangent is
@@ -74,23 +70,27 @@ class NewtonKrylov(eqx.Module):
       derivative of a run raises it to what its checkpointed segments hold (`replay`).
     """
 
-    rtol: float = eqx.field(static=True, default=1e-10)
-    max_iterations: int = eqx.field(static=True, default=20)
-    linear_solver: str = eqx.field(static=True, default="krylov")
-    krylov: str = eqx.field(static=True, default="gmres")
-    krylov_max_steps: int = eqx.field(static=True, default=60)
-    refresh_after: int = eqx.field(static=True, default=5)
-    line_search: int = eqx.field(static=True, default=8)
-    reuse_limit: int = eqx.field(static=True, default=20)
-    chord: int = eqx.field(static=True, default=10)
-    chord_contraction: float = eqx.field(static=True, default=0.5)
-    retain: int = eqx.field(static=True, default=RETAIN)
+    rtol: float = eqx.field(static=True)
+    max_iterations: int = eqx.field(static=True)
+    linear_solver: AbstractLinearSolver = eqx.field(static=True)
+    line_search: int = eqx.field(static=True)
+    reuse_limit: int = eqx.field(static=True)
+    chord: int = eqx.field(static=True)
+    chord_contraction: float = eqx.field(static=True)
+    retain: int = eqx.field(static=True)
+
+    def __init__(self, rtol=1e-10, max_iterations=20, linear_solver=GMRES(), line_search=8, reuse_limit=20, chord=10,
+                 chord_contraction=0.5, retain=RETAIN, *, krylov=None, krylov_max_steps=None, refresh_after=None):
+        self.rtol = rtol
+        self.max_iterations = max_iterations
+        self.linear_solver = from_legacy(linear_solver, krylov, krylov_max_steps, refresh_after)
+        self.line_search = line_search
+        self.reuse_limit = reuse_limit
+        self.chord = chord
+        self.chord_contraction = chord_contraction
+        self.retain = retain
 
     def __check_init__(self):
-        if self.linear_solver not in _LINEAR_SOLVERS:
-            raise ValueError(f"linear_solver must be one of {_LINEAR_SOLVERS}, got {self.linear_solver!r}.")
-        if self.krylov not in _KRYLOV:
-            raise ValueError(f"krylov must be one of {_KRYLOV}, got {self.krylov!r}.")
         if not (0.0 < self.rtol < 1.0):
             raise ValueError(f"rtol must lie in (0, 1), got {self.rtol!r}.")
         if self.max_iterations < 1:
@@ -166,7 +166,8 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     line search's backtracking trials are further passes that skip the solve.
     """
     res = lambda U: residual(scheme, scene, ctx, U)  # noqa: E731
-    direct = solver.linear_solver == "direct"
+    direct = isinstance(solver.linear_solver, Direct)
+    lin = solver.linear_solver
     stale = direct | tangent.stale | (tangent.h != ctx.h)
     rotation = body_rotation(scene, ctx.state.x)
 
@@ -204,10 +205,10 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             bnorm = jnp.sqrt(sum(jnp.sum(b**2) for b in jax.tree_util.tree_leaves(rhs)))
             eta = jnp.maximum(0.9 * (norm_t / jnp.minimum(prev, 1.0)) ** 2, 0.1 * solver.rtol / bnorm)
             eta = jnp.clip(eta, 1e-12, 1e-2)
-            if solver.krylov == "lineax":
-                dU_s, n_lin = _lineax_gmres(matvec, precond, rhs, eta, solver.krylov_max_steps)
+            if lin.backend == "lineax":
+                dU_s, n_lin = _lineax_gmres(matvec, precond, rhs, eta, lin.max_steps)
             else:
-                dU_s, n_lin, _ = gmres(matvec, precond, rhs, eta, solver.krylov_max_steps)
+                dU_s, n_lin, _ = gmres(matvec, precond, rhs, eta, lin.max_steps)
             return dU_s, n_lin, tan
 
         def skip(tan):
@@ -220,7 +221,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             prev=jnp.where(accept, prev, c["prev"]), sx=sx, dU=dU,
             a=jnp.where(accept, 1.0, 0.5 * c["a"]), n_ls=jnp.where(accept, 0, c["n_ls"] + 1),
             it=c["it"] + go_on.astype(int) + first.astype(int), kits=c["kits"] + n_lin, tan=tan,
-            refresh=jnp.where(accept, direct | (n_lin > solver.refresh_after), c["refresh"]),
+            refresh=jnp.where(accept, direct | (n_lin > (0 if direct else lin.refresh_after)), c["refresh"]),
             pending=go_on | ~accept,
         )
 

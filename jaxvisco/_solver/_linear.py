@@ -1,0 +1,83 @@
+"""How each Newton iteration solves its linear system: `GMRES` or `Direct`.
+
+Objects, as `NewtonKrylov(linear_solver=...)` takes them (after lineax and optimistix):
+every setting of the linear solve lives on the solver it belongs to. The strings of
+jaxvisco 0.1 stay accepted: ``"krylov"`` is `GMRES()` and ``"direct"`` is `Direct()`;
+the keywords ``krylov``, ``krylov_max_steps`` and ``refresh_after`` of `NewtonKrylov` are
+deprecated aliases of `GMRES`'s fields (`from_legacy`).
+"""
+
+import warnings
+
+import equinox as eqx
+
+_BACKENDS = ("jaxvisco", "lineax")
+
+
+class AbstractLinearSolver(eqx.Module):
+    """The linear solve of a Newton iteration (`GMRES` or `Direct`)."""
+
+
+class GMRES(AbstractLinearSolver):
+    """Newton–Krylov: GMRES on the JVP of the step residual, right-preconditioned by the
+    exact block solve with a condensed tangent that is kept across iterations and steps
+    (the default).
+
+    **Arguments:**
+    - `max_steps`: Krylov vectors per Newton iteration (60).
+    - `refresh_after`: re-form the tangent once GMRES needed more vectors than this (5).
+    - `backend`: ``"jaxvisco"`` (default: a GMRES that checks the residual after every
+      Arnoldi step, `_fem._krylov.gmres`) or ``"lineax"`` (lineax's `GMRES`, restarted
+      every 5 vectors; it checks convergence once per restart cycle and needs two cycles,
+      so it costs more Krylov vectors).
+    """
+
+    max_steps: int = eqx.field(static=True, default=60)
+    refresh_after: int = eqx.field(static=True, default=5)
+    backend: str = eqx.field(static=True, default="jaxvisco")
+
+    def __check_init__(self):
+        if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, int) or self.max_steps < 1:
+            raise ValueError(f"GMRES: max_steps must be an integer >= 1, got {self.max_steps!r}.")
+        if isinstance(self.refresh_after, bool) or not isinstance(self.refresh_after, int) or self.refresh_after < 0:
+            raise ValueError(f"GMRES: refresh_after must be an integer >= 0, got {self.refresh_after!r}.")
+        if self.backend not in _BACKENDS:
+            raise ValueError(f"GMRES: backend must be one of {_BACKENDS}, got {self.backend!r}.")
+
+
+class Direct(AbstractLinearSolver):
+    """Exact Newton steps: the condensed tangent is formed and factored at every
+    iteration (no Krylov vectors, no chord iterations); the robust choice for stiff
+    regimes."""
+
+
+_STRINGS = {"krylov": GMRES, "direct": Direct}
+_KRYLOV = {"gmres": "jaxvisco", "lineax": "lineax"}
+
+
+def from_legacy(linear_solver, krylov=None, krylov_max_steps=None, refresh_after=None):
+    """The linear solver for `NewtonKrylov(linear_solver=..., [krylov, krylov_max_steps,
+    refresh_after])`: an `AbstractLinearSolver` as given, a string of 0.1 as its object;
+    the three keywords (deprecated) fill a `GMRES`."""
+    if isinstance(linear_solver, str):
+        if linear_solver not in _STRINGS:
+            raise ValueError(f"linear_solver must be GMRES(...), Direct() or one of {tuple(_STRINGS)}, "
+                             f"got {linear_solver!r}.")
+        linear_solver = _STRINGS[linear_solver]()
+    elif not isinstance(linear_solver, AbstractLinearSolver):
+        raise ValueError(f"linear_solver must be GMRES(...), Direct() or one of {tuple(_STRINGS)}, "
+                         f"got {linear_solver!r}.")
+    legacy = {k: v for k, v in dict(krylov=krylov, krylov_max_steps=krylov_max_steps,
+                                    refresh_after=refresh_after).items() if v is not None}
+    if not legacy:
+        return linear_solver
+    warnings.warn(f"NewtonKrylov({', '.join(legacy)}=...) is deprecated: write NewtonKrylov(linear_solver=GMRES("
+                  "backend=..., max_steps=..., refresh_after=...)).", DeprecationWarning,
+                  stacklevel=5)  # NewtonKrylov's caller (past equinox's __init__ machinery)
+    if not isinstance(linear_solver, GMRES):
+        raise TypeError(f"NewtonKrylov: {', '.join(legacy)} set(s) GMRES, but linear_solver is {linear_solver!r}.")
+    if "krylov" in legacy and krylov not in _KRYLOV:
+        raise ValueError(f"krylov must be one of {tuple(_KRYLOV)}, got {krylov!r}.")
+    return GMRES(max_steps=int(legacy.get("krylov_max_steps", linear_solver.max_steps)),
+                 refresh_after=int(legacy.get("refresh_after", linear_solver.refresh_after)),
+                 backend=_KRYLOV[krylov] if "krylov" in legacy else linear_solver.backend)
