@@ -188,8 +188,9 @@ class Scene(eqx.Module):
         disc, rho = self.disc, self.density
         return mass_solve(lambda u: disc.mass_matvec(u, rho), disc.mass_diagonal(rho)[:, None], p, rtol)
 
-    def kinetic_energy(self, p):
-        return 0.5 * jnp.vdot(p, self.velocity(p))
+    def kinetic_energy(self, p, velocity=None):
+        """$p \\cdot M^{-1} p / 2$; `velocity`: $M^{-1}p$ where the caller has it already."""
+        return 0.5 * jnp.vdot(p, self.velocity(p) if velocity is None else velocity)
 
     # -- materials per cell ----------------------------------------------------------
     def cell_materials(self):
@@ -247,7 +248,7 @@ class Scene(eqx.Module):
     def diagnostics(self, state: State, velocity=None) -> dict:
         """Kinetic and free energy, H, dissipation rate, linear and angular momentum.
         `velocity`: $M^{-1}p$ where the caller has it already (default: solved here)."""
-        kin = self.kinetic_energy(state.p) if velocity is None else 0.5 * jnp.vdot(state.p, velocity)
+        kin = self.kinetic_energy(state.p, velocity)
         free = self.free_energy(state.x, state.gamma)
         return dict(
             kinetic=kin,

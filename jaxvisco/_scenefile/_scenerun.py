@@ -20,7 +20,7 @@ class RunReader:
 
     def run_options(self):
         from .._integrate._schedule import StepTo
-        from .._solver._linear import GMRES
+        from .._solver._linear import GMRES, krylov_backend
         from .._solver._newton import NewtonKrylov
         from .._time_element._time_element import Midpoint, Newmark, cG, eG
 
@@ -42,9 +42,7 @@ class RunReader:
         gmres = {_GMRES_KEYS[k]: kw.pop(k) for k in tuple(kw) if k in _GMRES_KEYS}
         try:
             if "backend" in gmres:
-                if gmres["backend"] not in ("gmres", "lineax"):
-                    raise ValueError(f"krylov must be one of ('gmres', 'lineax'), got {gmres['backend']!r}.")
-                gmres["backend"] = {"gmres": "jaxvisco"}.get(gmres["backend"], gmres["backend"])
+                gmres["backend"] = krylov_backend(gmres["backend"])
             if gmres:
                 if kw.get("linear_solver", "krylov") != "krylov":
                     raise ValueError(f"krylov, krylov_max_steps and refresh_after set the Krylov solver, but "

@@ -55,6 +55,13 @@ _STRINGS = {"krylov": GMRES, "direct": Direct}
 _KRYLOV = {"gmres": "jaxvisco", "lineax": "lineax"}
 
 
+def krylov_backend(krylov):
+    """`GMRES`'s backend for the 0.1 name `krylov` (``"gmres"`` or ``"lineax"``)."""
+    if krylov not in _KRYLOV:
+        raise ValueError(f"krylov must be one of {tuple(_KRYLOV)}, got {krylov!r}.")
+    return _KRYLOV[krylov]
+
+
 def from_legacy(linear_solver, krylov=None, krylov_max_steps=None, refresh_after=None):
     """The linear solver for `NewtonKrylov(linear_solver=..., [krylov, krylov_max_steps,
     refresh_after])`: an `AbstractLinearSolver` as given, a string of 0.1 as its object;
@@ -76,8 +83,6 @@ def from_legacy(linear_solver, krylov=None, krylov_max_steps=None, refresh_after
                   stacklevel=5)  # NewtonKrylov's caller (past equinox's __init__ machinery)
     if not isinstance(linear_solver, GMRES):
         raise TypeError(f"NewtonKrylov: {', '.join(legacy)} set(s) GMRES, but linear_solver is {linear_solver!r}.")
-    if "krylov" in legacy and krylov not in _KRYLOV:
-        raise ValueError(f"krylov must be one of {tuple(_KRYLOV)}, got {krylov!r}.")
     return GMRES(max_steps=int(legacy.get("krylov_max_steps", linear_solver.max_steps)),
                  refresh_after=int(legacy.get("refresh_after", linear_solver.refresh_after)),
-                 backend=_KRYLOV[krylov] if "krylov" in legacy else linear_solver.backend)
+                 backend=krylov_backend(krylov) if "krylov" in legacy else linear_solver.backend)

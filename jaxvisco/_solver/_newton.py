@@ -221,7 +221,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             prev=jnp.where(accept, prev, c["prev"]), sx=sx, dU=dU,
             a=jnp.where(accept, 1.0, 0.5 * c["a"]), n_ls=jnp.where(accept, 0, c["n_ls"] + 1),
             it=c["it"] + go_on.astype(int) + first.astype(int), kits=c["kits"] + n_lin, tan=tan,
-            refresh=jnp.where(accept, direct | (n_lin > (0 if direct else lin.refresh_after)), c["refresh"]),
+            refresh=jnp.where(accept, direct or (n_lin > lin.refresh_after), c["refresh"]),
             pending=go_on | ~accept,
         )
 
