@@ -89,29 +89,34 @@ def vec_to_sym(v):
 
 def small_solve(A, b):
     """Solve ``A x = b`` for one small dense system by Gaussian elimination with partial
-    pivoting, unrolled in plain array operations (vmap it over a batch).
+    pivoting in plain array operations (vmap it over a batch).
+
+    The eliminations and back substitutions are `fori_loop`s, not unrolled: unrolled,
+    the 12 x 12 local systems of eG(2)'s tangent were a fifth of its compiled time loop.
 
     **Arguments:** `A` (n, n), `b` (n,) or (n, m). **Returns:** `x` with `b`'s shape.
     """
     n = A.shape[-1]
     vec = b.ndim == 1
     B = b[:, None] if vec else b
-    M = jnp.concatenate([A, B], axis=1)
     rows = jnp.arange(n)
-    for i in range(n):
+
+    def eliminate(i, M):
         # Partial pivoting: bring the largest remaining entry of column i to row i.
         p = jnp.argmax(jnp.where(rows >= i, jnp.abs(M[:, i]), -1.0))
         ri, rp = M[i], M[p]
         M = M.at[i].set(rp).at[p].set(ri)
         factors = jnp.where(rows > i, M[:, i] / M[i, i], 0.0)
-        M = M - factors[:, None] * M[i][None, :]
-    # Back substitution.
-    X = M[:, n:]
-    U = M[:, :n]
-    out = jnp.zeros_like(X)
-    for i in range(n - 1, -1, -1):
-        xi = (X[i] - U[i, i + 1 :] @ out[i + 1 :]) / U[i, i]
-        out = out.at[i].set(xi)
+        return M - factors[:, None] * M[i][None, :]
+
+    M = jax.lax.fori_loop(0, n, eliminate, jnp.concatenate([A, B], axis=1))
+    U, X = M[:, :n], M[:, n:]
+
+    def substitute(j, out):
+        i = n - 1 - j  # rows below i are solved; out[i] and above are still zero
+        return out.at[i].set((X[i] - U[i] @ out) / U[i, i])
+
+    out = jax.lax.fori_loop(0, n, substitute, jnp.zeros_like(X))
     return out[:, 0] if vec else out
 
 
