@@ -1,6 +1,6 @@
 """Cost of a plain forward run at two revisions of jaxvisco, timed in alternation.
 
-    python benchmarks/revision_cost.py --base REV [--case "2D r1,1,default,400"] [--rounds 3]
+    python benchmarks/revision_cost.py --base REV [--case "2D r1,1,default,400"] [--rounds 3] [--out NAME]
 
 Checks out REV into a temporary git worktree, builds its C++ extension in place, and then
 runs `step_cost.py --case CASE` of each tree in turn (base, this tree, base, ...), each in
@@ -8,7 +8,7 @@ its own fresh process with JAX's persistent cache off, so both see the same mach
 round after round. Reports the medians over rounds of ms/step and of compile seconds, and
 their ratios (this tree / base). Issue #17's budget for the one time loop is a ratio of
 at most 1.05 in ms/step and a compile time no larger. Writes
-benchmarks/results/revision_cost.json with the load averages before every run.
+benchmarks/results/revision_cost.json (or NAME.json) with the load averages before every run.
 """
 
 import argparse
@@ -60,6 +60,7 @@ def main(argv=None):
     p.add_argument("--case", default="2D r1,1,default,400", help="step_cost.py case: scene,k,solver,steps")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per run")
+    p.add_argument("--out", default="revision_cost", help="results/OUT.json")
     a = p.parse_args(argv)
     base_rev = _git("rev-parse", a.base)
     head_rev = _git("rev-parse", "HEAD")
@@ -89,7 +90,7 @@ def main(argv=None):
                for key in ("ms_per_step", "ms_per_step_min", "compile_s")}
     for key, s in summary.items():
         print(f"{key}: base {s['base']:.2f}, head {s['head']:.2f}, head/base {s['ratio']:.3f}")
-    write_json("revision_cost.json", dict(
+    write_json(f"{a.out}.json", dict(
         machine=mach, base=base_rev, head=head_rev, head_has_uncommitted_changes=dirty, case=a.case,
         rounds=a.rounds, summary=summary, runs=runs,
         timing="each run a fresh process of step_cost.py --case (ms_per_step: median of 5 timed runs; compile_s: "
