@@ -12,12 +12,25 @@ of HLO instructions after XLA's optimization. The parts overlap (a Newton solve 
 the residual, the tangent, ...), so they do not add up to the whole; they show which
 piece of the program XLA spends its time on. Every case runs in a fresh process (XLA
 caches nothing across processes here). Writes benchmarks/results/compile_cost.json.
+
+    python benchmarks/compile_cost.py --anatomy [--schemes eG(1)] [--top 30]
+
+compiles the whole loop once with XLA's dump on and attributes every instruction of the
+optimized program to the jaxvisco functions on its stack (XLA keeps the Python stack of
+each instruction): instructions per function (inclusive) and per innermost source line,
+and the number of compiled kernels. This is how the loop's size was found to be a third
+cyclic-shift cross products (`_tensor.det3`/`inv3` differentiated twice per point).
 """
 
 import argparse
+import collections
 import json
+import os
+import pathlib
+import re
 import subprocess
 import sys
+import tempfile
 import time
 
 from common import jv, lshape, machine, schemes, write_json  # noqa: I001
@@ -95,6 +108,63 @@ def part(name, dim, refinement, scheme_name, mass):
     return dict(part=name, lower_s=lower_s, compile_s=compile_s, hlo_instructions=_hlo_instructions(compiled))
 
 
+def _stack_tables(lines):
+    """The FileNames / FunctionNames / FileLocations / StackFrames tables of an HLO dump."""
+    tables, section = {}, None
+    for line in lines:
+        if line in ("FileNames", "FunctionNames", "FileLocations", "StackFrames"):
+            section = tables.setdefault(line, {})
+        elif section is not None and not line.strip():
+            section = None
+        elif section is not None:
+            key, rest = line.split(" ", 1)
+            section[int(key)] = rest
+    files = {k: v.strip('"').split("site-packages/")[-1] for k, v in tables["FileNames"].items()}
+    funcs = {k: v.strip('"') for k, v in tables["FunctionNames"].items()}
+    locs = {k: tuple(int(x) for x in re.match(r"\{file_name_id=(\d+) function_name_id=(\d+) line=(\d+)", v).groups())
+            for k, v in tables["FileLocations"].items()}
+    frames = {k: tuple(int(x) for x in re.match(r"\{file_location_id=(\d+) parent_frame_id=(\d+)", v).groups())
+              for k, v in tables["StackFrames"].items()}
+    return files, funcs, locs, frames
+
+
+def anatomy(scheme_name, dim, refinement, mass, top):
+    """Instructions of the optimized time loop per jaxvisco function and per line."""
+    dump = pathlib.Path(tempfile.mkdtemp(prefix="jaxvisco-hlo-"))
+    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_dump_to={dump}".strip())
+    cmd = [sys.executable, __file__, "--worker", f"{scheme_name}|simulate", "--dim", str(dim),
+           "--refinement", str(refinement), "--mass", mass]
+    subprocess.run(cmd, check=True, capture_output=True, env=env)
+    (path,) = dump.glob("*jit__run.cpu_after_optimizations.txt")
+    lines = path.read_text().splitlines()
+    files, funcs, locs, frames = _stack_tables(lines)
+    inclusive, innermost, n = collections.Counter(), collections.Counter(), 0
+    for line in lines:
+        m = re.search(r"stack_frame_id=(\d+)", line)
+        if " = " not in line or m is None:
+            continue
+        n += 1
+        stack, fid = [], int(m.group(1))
+        while fid > 0:  # parent ids are one-based; 0 ends the stack
+            loc, parent = frames[fid]
+            f, fn, ln = locs[loc]
+            if "jaxvisco/" in files[f] and "benchmarks" not in files[f]:
+                stack.append((files[f].split("jaxvisco/", 1)[1], funcs[fn], ln))
+            fid = parent - 1
+        for key in {(f, fn) for f, fn, _ in stack}:
+            inclusive[key] += 1
+        if stack:
+            innermost[stack[0]] += 1
+    kernels = sum(1 for p in dump.iterdir() if "jit__run" in p.name and "obj-file" in p.name)
+    print(f"{scheme_name}: {n} instructions with a stack, {kernels} compiled kernels ({path.name})")
+    print("-- instructions per jaxvisco function (inclusive)")
+    for (f, fn), c in inclusive.most_common(top):
+        print(f"{c:7d}  {f}:{fn}")
+    print("-- per innermost jaxvisco source line")
+    for (f, fn, ln), c in innermost.most_common(top):
+        print(f"{c:7d}  {f}:{ln} ({fn})")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="eG(1) only, the whole loop and the Newton solve")
@@ -104,8 +174,14 @@ def main(argv=None):
     p.add_argument("--schemes", default=None)
     p.add_argument("--parts", default=None)
     p.add_argument("--out", default="compile_cost")
+    p.add_argument("--anatomy", action="store_true", help="attribute the whole loop's instructions")
+    p.add_argument("--top", type=int, default=30)
     p.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.anatomy:
+        for s in (a.schemes.split(",") if a.schemes else ["eG(1)"]):
+            anatomy(s, a.dim, a.refinement, a.mass, a.top)
+        return
     if a.worker:
         scheme_name, name = a.worker.split("|")
         print("ROW " + json.dumps(part(name, a.dim, a.refinement, scheme_name, a.mass)), flush=True)
