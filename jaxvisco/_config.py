@@ -66,28 +66,39 @@ def enable_compilation_cache(path=None):
     return path
 
 
-# XLA's CPU backend hands fused element-wise and reduction code to its YNNPACK library
-# by default. jaxvisco's kernels work on stacks of thousands of 3x3 tensors, where those
-# library calls cost more than the loops XLA writes itself: with YNNPACK kept to single
-# dot products, the eG(1) step of the 2D L-shape (refinement 4, lumped mass, h = 0.1)
-# took 111-117 ms against 148-163 ms (two runs each, alternating), the 3D L-shape
-# (refinement 1) 46-56 ms against 58-66 ms; iteration counts alike, compile time alike.
-_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
+# XLA options for jaxvisco's own programs on CPU, each measured on its time loops:
+# - YNNPACK kept to single dot products. XLA hands fused element-wise and reduction code
+#   to its YNNPACK library by default; jaxvisco's kernels work on stacks of thousands of
+#   3x3 tensors, where those library calls cost more than the loops XLA writes itself:
+#   the eG(1) step of the 2D L-shape (refinement 4, lumped mass, h = 0.1) took 111-117 ms
+#   against 148-163 ms (two runs each, alternating), the 3D L-shape (refinement 1)
+#   46-56 ms against 58-66 ms; iteration counts alike, compile time alike.
+# - XLA:CPU's loop emitters instead of its newer fusion emitters. The time loop of the
+#   paper's L-shape (eG(1)) compiles to 357 kernels instead of 686, in 9.4 s instead of
+#   14.8 s, and its steps are no slower: 2D r4 lumped eG(1) 38.2 against 40.4 ms, 3D r1
+#   5.4 against 6.6 ms, 2D r4 eG(2) 55.9 against 61.0 ms (one alternating round, loaded
+#   2-core VM; `benchmarks/step_cost.py --case`).
+_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT",
+                "xla_cpu_use_fusion_emitters": False}
 
 
 @functools.cache
 def compiler_options():
-    """The XLA options jaxvisco compiles its programs with: the CPU options above where
-    this jaxlib knows them (the option is experimental; an XLA without it gets none),
-    none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's defaults). Call it outside any JAX
-    transformation (JAX accepts compile options on top-level programs only)."""
+    """The XLA options jaxvisco compiles its programs with: those of the CPU options above
+    that this jaxlib knows (they are experimental or may go; each is probed on its own
+    and an unknown one is left out), none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's
+    defaults). Call it outside any JAX transformation (JAX accepts compile options on
+    top-level programs only)."""
     if os.environ.get("JAXVISCO_XLA_OPTIONS", "").strip().lower() in ("off", "0", "none", "default"):
         return {}
-    try:
-        jax.jit(lambda x: x + 1.0, compiler_options=_CPU_OPTIONS)(jnp.zeros(()))
-    except Exception:  # noqa: BLE001 - an XLA that does not know the option
-        return {}
-    return dict(_CPU_OPTIONS)
+    known = {}
+    for key, value in _CPU_OPTIONS.items():
+        try:
+            jax.jit(lambda x: x + 1.0, compiler_options={key: value})(jnp.zeros(()))
+        except Exception:  # noqa: BLE001 - an XLA that does not know the option
+            continue
+        known[key] = value
+    return known
 
 
 def _top_level():
