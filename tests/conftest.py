@@ -1,9 +1,14 @@
 import os
 
 # Tests are dominated by XLA compile time, not run time: compile with cheap optimization.
-os.environ["XLA_FLAGS"] = (
-    os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-).strip()
+# Each flag is added once: pytest-xdist workers inherit the variable from the first
+# process and load this file again, and JAX's persistent cache key hashes XLA_FLAGS word
+# by word, so a doubled flag gave the workers' programs other keys than those of the
+# command-line subprocesses (helpers.subprocess_env passes this same variable on), and
+# neither found the other's compiled programs.
+TEST_XLA_FLAGS = ["--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true"]
+_flags = os.environ.get("XLA_FLAGS", "").split()
+os.environ["XLA_FLAGS"] = " ".join(_flags + [f for f in TEST_XLA_FLAGS if f not in _flags])
 
 # One persistent compilation cache for the whole test session, new and empty each time:
 # the suite compiles the same programs again and again (in every module, after

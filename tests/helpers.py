@@ -12,13 +12,14 @@ import numpy as np
 
 
 def subprocess_env():
-    """Environment for a jaxvisco subprocess: the tests' cheap XLA optimization, unbuffered
+    """Environment for a jaxvisco subprocess: the tests' XLA flags (conftest.py), unbuffered
     output (progress lines arrive as they are printed), the test session's compilation
     cache (conftest.py; never the user's; tests that study the cache set their own
     JAXVISCO_CACHE_DIR)."""
+    # XLA_FLAGS: conftest.py's, inherited unchanged. The persistent cache key hashes
+    # them, so a subprocess finds the programs the test processes compiled, and they its.
     env = dict(os.environ)
     env["JAXVISCO_CACHE_DIR"] = os.environ.get("JAXVISCO_TEST_SESSION_CACHE", "off")
-    env["XLA_FLAGS"] = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
     env["PYTHONUNBUFFERED"] = "1"
     return env
 
