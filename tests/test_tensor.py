@@ -91,7 +91,7 @@ def test_sym_to_vec_round_trip(rng):
 # ------------------------------------------------------------------ small dense solve
 
 
-# Light XLA options: the unrolled elimination compiles slowly and runs once.
+# Light XLA options: these programs run once.
 _FAST = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 

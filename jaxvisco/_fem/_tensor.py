@@ -40,18 +40,23 @@ def det3(A):
     return jnp.sum(A[..., 0, :] * _cross(A[..., 1, :], A[..., 2, :]), axis=-1)
 
 
+def _det_by_cofactors(A, cof):
+    """det A expanded along its first row, with the cofactors already at hand."""
+    return jnp.sum(A[..., 0, :] * cof[..., 0, :], axis=-1)
+
+
 @det3.defjvp
 def _det3_jvp(primals, tangents):
     (A,), (dA,) = primals, tangents
     cof = cofactor3(A)
-    return jnp.sum(A[..., 0, :] * cof[..., 0, :], axis=-1), jnp.sum(cof * dA, axis=(-2, -1))
+    return _det_by_cofactors(A, cof), jnp.sum(cof * dA, axis=(-2, -1))
 
 
 @jax.custom_jvp
 def inv3(A):
     """Inverse of (..., 3, 3) via the adjugate."""
     cof = cofactor3(A)
-    return jnp.swapaxes(cof, -1, -2) / jnp.sum(A[..., 0, :] * cof[..., 0, :], axis=-1)[..., None, None]
+    return jnp.swapaxes(cof, -1, -2) / _det_by_cofactors(A, cof)[..., None, None]
 
 
 @inv3.defjvp
