@@ -126,11 +126,13 @@ def jit(fn=None, *, export=False):
     variants = {}
 
     def get():
-        top = _top_level()
-        if top not in variants:
-            opts = compiler_options() if top else {}
-            variants[top] = eqx.filter_jit(fn, compiler_options=opts or None)
-        return variants[top]
+        # One variant per set of options (none inside a trace), so that it always matches
+        # `compiler_options()`, as the exported path does (its key holds the options).
+        opts = compiler_options() if _top_level() else {}
+        key = tuple(sorted(opts.items()))
+        if key not in variants:
+            variants[key] = eqx.filter_jit(fn, compiler_options=opts or None)
+        return variants[key]
 
     name = f"{fn.__module__}.{fn.__qualname__}"
 
