@@ -1,6 +1,7 @@
 """Reese–Govindjee material: derivatives vs finite differences, thermodynamic identities,
 objectivity, viscosity limits and scalings, input validation (THEORY §1)."""
 
+import decimal
 import functools
 
 import equinox as eqx
@@ -387,3 +388,63 @@ def test_parameters_are_differentiable_leaves():
     gmu = float(jax.grad(psi_of)(7500.0))
     fdmu = (float(psi_of(7500.0 + 1.0)) - float(psi_of(7500.0 - 1.0))) / 2.0
     assert gmu == pytest.approx(fdmu, rel=1e-8)
+
+
+# ------------------------------------------------------------------ energy increments
+
+def _decimal_energy(nh, C):
+    """Neo-Hooke energy of a 3x3 tensor of Decimals, to 60 digits (the reference)."""
+    lam, mu = decimal.Decimal(float(nh.lam)), decimal.Decimal(float(nh.mu))
+    (a, b, c), (d, e, f), (g, h, i) = C
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    ln_j = det.ln() / 2
+    return mu / 2 * (a + e + i - 3) - mu * ln_j + lam / 2 * ln_j * ln_j
+
+
+def _decimal(A):
+    return [[decimal.Decimal(float(v)) for v in row] for row in np.asarray(A)]
+
+
+def _decimal_inv(A):
+    (a, b, c), (d, e, f), (g, h, i) = A
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    cof = [[e * i - f * h, f * g - d * i, d * h - e * g], [c * h - b * i, a * i - c * g, b * g - a * h],
+           [b * f - c * e, c * d - a * f, a * e - b * d]]
+    return [[cof[j][k] / det for j in range(3)] for k in range(3)]
+
+
+def _decimal_matmul(A, B):
+    return [[sum(A[i][m] * B[m][j] for m in range(3)) for j in range(3)] for i in range(3)]
+
+
+@pytest.mark.parametrize("scale", [1e-2, 1e-5, 1e-8])
+def test_energy_increment_without_cancellation(scale):
+    """Psi(C0 + dC, G0 + dG) - Psi(C0, G0) from the increments (what eG's energy defect
+    uses) against 60-digit arithmetic: relative error ~1e-15 at every increment size,
+    where the difference of two energies loses ~1e-16 mu absolute, i.e. all digits of a
+    tiny increment (the noise eG's algorithmic stress amplified into a residual floor)."""
+    mat = MATERIALS["mixed"]
+    rng = np.random.default_rng(7)
+    F0 = I3 + 0.1 * rng.normal(size=(3, 3))
+    dF = scale * rng.normal(size=(3, 3))
+    C0 = F0.T @ F0
+    dC = F0.T @ dF + dF.T @ F0 + dF.T @ dF
+    G0 = random_spd(rng, scale=0.1)
+    G1 = G0 + random_sym(rng, scale=scale)
+    dG = G1 - G0  # exact (nearby floats), as in the kernel
+    with decimal.localcontext() as ctx:
+        ctx.prec = 60
+        C1 = [[a + b for a, b in zip(r0, r1)] for r0, r1 in zip(_decimal(C0), _decimal(dC))]
+        ref = (_decimal_energy(mat.equilibrium, C1) - _decimal_energy(mat.equilibrium, _decimal(C0))
+               + _decimal_energy(mat.nonequilibrium, _decimal_matmul(C1, _decimal_inv(_decimal(G1))))
+               - _decimal_energy(mat.nonequilibrium, _decimal_matmul(_decimal(C0), _decimal_inv(_decimal(G0)))))
+        ref = float(ref)
+    inc = float(jax.jit(lambda *a: mat.free_energy_increment(*a))(C0, dC, G0, dG))
+    plain = float(mat.free_energy(C0 + dC, G1) - mat.free_energy(C0, G0))
+    assert abs(inc - ref) <= 1e-13 * abs(ref), (inc, ref)
+    if scale <= 1e-5:  # the case is hard: the plain difference has lost digits
+        assert abs(plain - ref) > 1e3 * abs(inc - ref)
+    # an energy without `increment` falls back to the plain difference
+    fallback = ReeseGovindjee(lambda C: mat.equilibrium(C))
+    assert float(fallback.free_energy_increment(C0, dC)) == pytest.approx(
+        float(mat.equilibrium(C0 + dC) - mat.equilibrium(C0)), rel=0, abs=0)

@@ -507,8 +507,9 @@ def test_eg_momenta_and_energy_balance(shift, velocities, lam, mu, lam2, mu2, et
     9.301e-12 against 9.300e-12 in (b)), H_{n+1} - H_n + D_n = sum_a (x_{n+1} - x_n)_a . R_a / h. The
     solver stops at max|R| <= r sx: r the scaled residual it reports (`residual`, at most
     1000 rtol), sx its momentum scale (`_newton._scale`), which the predictor's force
-    impulse can make far larger than the momenta (sx = 28 with |p| = 0.03 in (b)). r does
-    not shrink with rtol below ~1e-11 sx: there R is eG's rounding noise (the gain of the
+    impulse can make far larger than the momenta (sx = 28 with |p| = 0.03 in (b)). Until
+    the energy defect was computed from increments (`free_energy_increment`), r did not
+    shrink with rtol below ~1e-11 sx: R was eG's rounding noise (the gain of the
     algorithmic stress on the energy defect's rounding, `_time_element._BETA_FLOOR`),
     5e-10 in (b) where every term of R is < 0.06. Rounding adds a few eps of each
     quantity, and H, of a body near F = I, ~eps (lam + mu) per unit volume in Psi."""

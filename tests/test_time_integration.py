@@ -145,3 +145,18 @@ def test_forward_results_equal_the_loop_before_issue_17(lshape, name):
         err = np.max(np.abs(a - b)) / scale
         print(f"{name} {field}: {err:.1e}")
         assert err <= 1e-9, (field, err)
+
+
+@pytest.mark.timeout(300)
+def test_eg_residual_has_no_rounding_floor_above_1e_13(lshape):
+    """eG(1) on the L-shape at h = 0.1 converges to rtol = 1e-13 in every step (the scaled
+    residual each step reports is below it), not to the floor that the "no longer halves
+    below 1000 rtol" rule accepts. The energy defect used to be a difference of two
+    energies near C = I, whose ~1e-16 mu rounding eG's algorithmic stress divides by the
+    squared strain increment: this run's residual stalled at 6e-12 - 2.5e-11 (now
+    <= 5.2e-14), and at the default rtol 1e-10 the 2D L-shape at refinement 4 ended
+    every step with Newton iterations against that floor."""
+    sol = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, solver=jv.NewtonKrylov(rtol=1e-13))
+    r = np.asarray(sol.residual)
+    assert sol.status == "done" and len(r) == 10  # one per step
+    assert np.all(r <= 1e-13), r

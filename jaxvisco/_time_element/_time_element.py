@@ -20,16 +20,20 @@ from ._time_basis import time_element_matrices
 
 # Regularization of eG's algorithmic factor, (strain increment)^2 units:
 # beta = G den / (den^2 + floor^2) with den = |C'|^2 + 4|Gamma'|^2 (beta = G / den without it).
-# The energy defect G is computed as Psi(1) - Psi(0) - (power), so it carries rounding
-# noise ~1e-16 (lam + mu) even where nothing moves; G / den amplifies that into
-# S_alg = 2 beta C' without bound as C' -> 0 (a rigidly translating body got S_alg ~ 1e-4 mu
-# of pure noise and Newton could not converge: the rigid-translation test). With the floor
-# the gain is at most 1.14 / sqrt(floor) ~ 1e5. What the regularization leaves in the
-# energy balance is G floor^2 / (den^2 + floor^2): a fraction (floor / den)^2 of the defect
-# where the increment is resolved (den = 4e-3: 6e-16), and all of it only where
-# den < floor, where G, third order in the increment, is below ~1e-15 (lam + mu) per
-# unit volume. The earlier form G / (den + floor) left a fraction floor / den: 1.3e-9 H_0
-# per step in a drawn case (lam = 7343, H_0 = 1.04), above the 1e-9 H_0 the scheme promises.
+# G / den amplifies the rounding error of the energy defect G without bound as C' -> 0
+# (a rigidly translating body got S_alg ~ 1e-4 mu of pure noise and Newton could not
+# converge: the rigid-translation test). With the floor the gain is at most
+# 1.14 / sqrt(floor) ~ 1e5. What the regularization leaves in the energy balance is
+# G floor^2 / (den^2 + floor^2): a fraction (floor / den)^2 of the defect where the
+# increment is resolved (den = 4e-3: 6e-16), and all of it only where den < floor, where
+# G, third order in the increment, is below ~1e-15 (lam + mu) per unit volume. The earlier
+# form G / (den + floor) left a fraction floor / den: 1.3e-9 H_0 per step in a drawn case
+# (lam = 7343, H_0 = 1.04), above the 1e-9 H_0 the scheme promises.
+# G's rounding error itself is kept relative to the increment: Psi(1) - Psi(0) comes
+# from the increments of C and Gamma (`ReeseGovindjee.free_energy_increment`), not as the
+# difference of two energies, which carried ~1e-16 (lam + mu) of noise per point and,
+# through the gain, a floor of ~1e-11 (relative) in the step residual (see
+# test_eg_residual_has_no_rounding_floor_above_1e_13).
 _BETA_FLOOR = 1e-10
 
 
@@ -206,10 +210,13 @@ class eG(AbstractTimeElement):
         Cbar = jnp.einsum("lI,Iij->lij", V, CI)
         Fl = jnp.einsum("lI,Iij->lij", V, F)
         Cd = 2.0 * sym(jnp.swapaxes(Fl, -1, -2) @ jnp.einsum("lI,Iij->lij", D, F))
-        ends = jnp.array([0, -1])
+        # C_k - C_0 from the increment of F (exact algebra, no cancellation near C = I).
+        dF = F[-1] - F[0]
+        dC = jnp.swapaxes(F[0], -1, -2) @ dF
+        dC = dC + jnp.swapaxes(dC, -1, -2) + jnp.swapaxes(dF, -1, -2) @ dF
         if G is None:
             S = jax.vmap(material.stress)(Cbar)
-            psi = jax.vmap(material.free_energy)(CI[ends])
+            dpsi = material.free_energy_increment(CI[0], dC)
             power = jnp.sum(w * ddot(S, Cd)) / 2.0
             den = jnp.sum(w * ddot(Cd, Cd))
             Gl = Gd = dpsi_dG = None
@@ -217,10 +224,10 @@ class eG(AbstractTimeElement):
             Gl = jnp.einsum("lI,Iij->lij", V, G)
             Gd = jnp.einsum("lI,Iij->lij", D, G)
             S, dpsi_dG = jax.vmap(material.stress_and_gamma_gradient)(Cbar, Gl)
-            psi = jax.vmap(material.free_energy)(CI[ends], G[ends])
+            dpsi = material.free_energy_increment(CI[0], dC, G[0], G[-1] - G[0])
             power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(w * ddot(dpsi_dG, Gd))
             den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(w * ddot(Gd, Gd))
-        beta = (psi[1] - psi[0] - power) * den / (den**2 + _BETA_FLOOR**2)
+        beta = (dpsi - power) * den / (den**2 + _BETA_FLOOR**2)
         # The algorithmic driving force of the flow rule and the dissipation.
         Y = None if G is None else dpsi_dG + 4.0 * beta * Gd
         return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, Y=Y, beta=beta, w=w)
