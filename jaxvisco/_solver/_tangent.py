@@ -195,6 +195,10 @@ def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN) -> Tangent
     return Tangent(token, ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG)
 
 
+def _matvec(A, b):
+    return jnp.sum(A * b[..., None, :], axis=-1)
+
+
 def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None) -> Unknowns:
     """Solve the linearized step equations with the condensed tangent (exact where the
     tangent was formed).
@@ -211,8 +215,8 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     bx = b.x if R is None else b.x @ R  # R^T b per node
     if b.g is not None:
         bg = jnp.moveaxis(b.g, 0, 2).reshape(disc.n_cells, disc.n_qp, 6 * k)
-        z = jnp.einsum("eqab,eqb->eqa", tangent.Ainv, bg)
-        dP = jnp.einsum("eqab,eqb->eqa", tangent.dP_dG, z)
+        z = _matvec(tangent.Ainv, bg)
+        dP = _matvec(tangent.dP_dG, z)
         dP = dP.reshape(disc.n_cells, disc.n_qp, -1, 3, 3)
         coupling = force_term(scheme, scene, ctx, dP)
         if scene.fixed is not None:
@@ -223,6 +227,6 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     if b.g is None:
         return Unknowns(turn(dx), None)
     dF = jnp.moveaxis(disc.gradient(dx), 0, 2)  # (e, q, k, 3, 3), zero F33 row in 2D
-    dg = z + jnp.einsum("eqab,eqb->eqa", tangent.dG_dF, dF.reshape(disc.n_cells, disc.n_qp, 9 * k))
+    dg = z + _matvec(tangent.dG_dF, dF.reshape(disc.n_cells, disc.n_qp, 9 * k))
     dg = jnp.moveaxis(dg.reshape(disc.n_cells, disc.n_qp, k, 6), 2, 0)
     return Unknowns(turn(dx), dg)
