@@ -88,3 +88,13 @@ def test_radau_agrees_with_eG3(ode):
     assert np.linalg.norm(x - end.x) / np.linalg.norm(end.x) < 2e-8  # 7e-9 measured (order ~6)
     assert np.linalg.norm(p - end.p) / np.linalg.norm(end.p) < 1e-5  # 3.3e-6 measured
     assert float(sol.energy[-1]) == pytest.approx(float(ode.energy(ref.y[:, -1])), rel=1e-8)
+
+
+def test_methods_work_inside_a_users_jit(ode):
+    """`rhs`, `energy` and `jac_values` are compiled with jaxvisco's XLA options when called
+    from the host; inside a user's `jax.jit` (where JAX refuses compile options: it raised
+    "compiler_options can only be passed to top-level jax.jit") they are plain nested jits."""
+    y = jnp.asarray(_perturbed(ode, seed=3))
+    f = jax.jit(lambda u: (ode.rhs(0.0, u), ode.energy(u), ode.jac_values(0.0, u)))(y)
+    for a, b in zip(f, (ode.rhs(0.0, y), ode.energy(y), ode.jac_values(0.0, y))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-13, atol=1e-13 * float(np.max(np.abs(b))))

@@ -15,7 +15,6 @@ consistent mass matrix ẋ = M⁻¹p couples every node to every other (M⁻¹ i
 the sparse Jacobian needs a lumped (diagonal) mass: `Scene(..., mass="lumped")`.
 """
 
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -61,7 +60,7 @@ class SemiDiscrete:
 
         # The scene is closed over (its arrays become constants): the least call overhead
         # for host-driven solvers that call these thousands of times.
-        jit = functools.partial(jax.jit, compiler_options=(compiler_options() if _top_level() else {}) or None)
+        jit = _host_jit
         self._rhs = jit(lambda t, y: _rhs(scene, t, y, self.lumped))
         self._energy = jit(lambda y: _energy(scene, y))
         self._dissipation = jit(lambda y: scene.dissipation_rate(*_xg(scene, y)))
@@ -124,6 +123,14 @@ class SemiDiscrete:
     def sparsity(self):
         self._need_lumped()
         return sp.csc_matrix((np.ones(self.nnz), self._indices, self._indptr), shape=(self.n, self.n))
+
+
+def _host_jit(fn):
+    """`jax.jit(fn)` with jaxvisco's compile options for calls from the host; inside a JAX
+    trace (a user's `jax.jit` or `jax.grad` around `rhs`) a plain `jax.jit`, since JAX
+    accepts compile options on top-level programs only."""
+    top, inner = jax.jit(fn, compiler_options=compiler_options() or None), jax.jit(fn)
+    return lambda *args: top(*args) if _top_level() else inner(*args)
 
 
 def semidiscrete(scene: Scene) -> SemiDiscrete:
