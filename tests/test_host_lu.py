@@ -43,8 +43,9 @@ from jaxvisco import _export
 scene = jv.scenes.lshape(dim=2, refinement=1)
 sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1)
 run = [m for m in seen if "'jit__run'" in m or "'jit_exported__run'" in m]
+hits = sum("Persistent compilation cache hit" in m for m in seen)
 print("RESULT " + json.dumps(dict(log=run, x=float(abs(sol.x[-1]).sum()), H=float(sol.energy[-1]),
-                                  export=_export.stats)))
+                                  export=_export.stats, hits=hits)))
 """
 
 
@@ -73,6 +74,9 @@ def test_second_process_served_from_cache(tmp_path):
     assert second["export"] == {"exported": 0, "loaded": 1, "uncacheable": 0}, second["export"]
     assert any("Persistent compilation cache hit for 'jit_exported__run'" in m for m in second["log"]), second["log"]
     assert second["x"] == first["x"] and second["H"] == first["H"]
+    # and so are the small programs around the loop (each compiles in milliseconds, below
+    # JAX's default threshold of a second for caching; `enable_compilation_cache` lowers it)
+    assert second["hits"] >= 10, second["hits"]
     # the pure_callback path is what JAX refuses to cache (and jax.export to serialize)
     callback = _run(tmp_path, "callback")
     assert any("'jit__run' because it uses host callbacks" in m for m in callback["log"]), callback["log"]
