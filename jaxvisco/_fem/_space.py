@@ -56,13 +56,14 @@ class Discretization(eqx.Module):
     (thickness 1 in plane strain), `mass_el` (n_cells, n_en, n_en) element mass matrices
     for unit density (consistent, or lumped by HRZ diagonal scaling: the diagonal of the
     consistent matrix scaled to the element's mass, positive for every element type);
-    `cells` (static) the connectivity.
+    `X` (n_nodes, dim) the reference positions; `cells` (static) the connectivity.
     """
 
     N: jax.Array
     dN: jax.Array
     JxW: jax.Array
     mass_el: jax.Array
+    X: jax.Array
     cells: StaticArray = eqx.field(static=True)
     n_nodes: int = eqx.field(static=True)
     dim: int = eqx.field(static=True)
@@ -80,6 +81,7 @@ class Discretization(eqx.Module):
             scale = jnp.sum(self.JxW, axis=1) / jnp.sum(diag, axis=1)
             mass_el = jax.vmap(jnp.diag)(diag * scale[:, None])
         self.mass_el = mass_el
+        self.X = jnp.asarray(mesh.points, dtype=float)
         self.cells = StaticArray(np.asarray(mesh.cells))
         self.n_nodes = int(mesh.n_nodes)
         self.dim = int(mesh.dim)
@@ -118,8 +120,14 @@ class Discretization(eqx.Module):
         return jnp.sum(self.gather(u)[..., :, None, :, :, None] * self.dN[:, :, :, None, :], axis=-3)
 
     def deformation_gradient(self, x):
-        """Positions (..., n_nodes, d) -> F at every quadrature point (..., n_cells, nq, 3, 3)."""
-        return embed_3d(self._gradient_d(x))
+        """Positions (..., n_nodes, d) -> F at every quadrature point (..., n_cells, nq, 3, 3),
+        as $I + \nabla_X(x - X)$: the gradient of the nodal positions themselves carries
+        rounding of ~1e-16 |x| / (element size) (F - I ~ 2e-15 on the L-shape at rest), that of
+        the displacement only of the displacement (F = I exactly for a body at rest, whose
+        residual was otherwise that rounding's stress: 6e-8 of the scale of a step at rest,
+        near Newton's acceptance)."""
+        d = x.shape[-1]
+        return embed_3d(jnp.eye(d, dtype=x.dtype) + self._gradient_d(x - self.X))
 
     def force(self, P):
         """Nodal forces $f_A = \\sum_{qp} w\\, P \\nabla_X N_A$ of first Piola–Kirchhoff
