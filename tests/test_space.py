@@ -459,3 +459,21 @@ def test_scene_input_errors():
     # A plain energy function is accepted as an elastic material.
     s = Scene(mesh, NeoHooke(lam=1.0, mu=1.0), RHO)
     assert not s.has_internal_variable and s.initial_state().gamma is None
+
+
+@pytest.mark.parametrize("elem", ["quad4", "tri6", "hex8", "tet10"])
+def test_reference_configuration_is_exactly_unstrained(elem):
+    """F = I bit for bit at the reference positions (F = I + grad(x - X)), so a body at
+    rest has exactly zero stress and internal force; the gradient of the positions
+    themselves left ~1e-15 of rounding, a residual near Newton's acceptance for a body at
+    rest (test_adaptive's equilibrium case took 62-82 Newton iterations per step)."""
+    mesh = _mesh(elem)
+    scene = Scene(mesh, VISCO, RHO)
+    X = jnp.asarray(mesh.points)
+    F = np.asarray(scene.disc.deformation_gradient(X))
+    assert np.array_equal(F, np.broadcast_to(np.eye(3), F.shape))
+    P = jax.vmap(jax.vmap(lambda f: f @ VISCO.stress(f.T @ f, jnp.eye(3))))(jnp.asarray(F))
+    assert not np.any(np.asarray(scene.disc.force(P)))
+    # and a translated copy is unstrained to rounding of the translation only
+    Ft = np.asarray(scene.disc.deformation_gradient(X + 0.25))
+    assert np.max(np.abs(Ft - np.eye(3))) <= 1e-14
