@@ -10,7 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._fem._tensor import cofactor3, ddot, det3, dev, inv3, sym
+from ._fem._tensor import ddot, det3, dev, inv3, sym
 from ._validation import check_positive
 
 
@@ -40,14 +40,18 @@ class NeoHooke(eqx.Module):
 
     def increment(self, C, dC):
         r"""$\psi(C + dC) - \psi(C)$ without cancellation: from $\operatorname{tr} dC$ and
-        $\det(C + dC) - \det C = \operatorname{cof} C : dC + C : \operatorname{cof} dC + \det dC$
+        $\det(C + dC)/\det C - 1 = I_1 + I_2 + I_3$, the invariants of $M = C^{-1} dC$
         (exact for 3x3), so its rounding error is relative to the increment. The plain
         difference of two energies near $C = I$ carries ~1e-16 (tr C) mu of rounding
-        whatever the increment (see `ReeseGovindjee.free_energy_increment`)."""
-        det0 = det3(C)
-        ddet = jnp.sum(cofactor3(C) * dC) + jnp.sum(C * cofactor3(dC)) + det3(dC)
-        ln_j0 = 0.5 * jnp.log(det0)
-        d_ln_j = 0.5 * jnp.log1p(ddet / det0)
+        whatever the increment (see `ReeseGovindjee.free_energy_increment`). Written
+        with `inv3`, `det3` and products only, whose derivatives are closed forms (a
+        cofactor expansion here, differentiated in the tangent, made the time loop 20 %
+        slower to compile)."""
+        M = inv3(C) @ dC
+        tr = jnp.trace(M)
+        ddet = tr + 0.5 * (tr**2 - jnp.sum(M * M.T)) + det3(M)  # det(C + dC) / det C - 1
+        ln_j0 = 0.5 * jnp.log(det3(C))
+        d_ln_j = 0.5 * jnp.log1p(ddet)
         return 0.5 * self.mu * jnp.trace(dC) - self.mu * d_ln_j + 0.5 * self.lam * d_ln_j * (2.0 * ln_j0 + d_ln_j)
 
     @property
