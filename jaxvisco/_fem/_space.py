@@ -121,7 +121,7 @@ class Discretization(eqx.Module):
 
     def deformation_gradient(self, x):
         """Positions (..., n_nodes, d) -> F at every quadrature point (..., n_cells, nq, 3, 3),
-        as $I + \nabla_X(x - X)$: the gradient of the nodal positions themselves carries
+        as $I + \\nabla_X(x - X)$: the gradient of the nodal positions themselves carries
         rounding of ~1e-16 |x| / (element size) (F - I ~ 2e-15 on the L-shape at rest), that of
         the displacement only of the displacement (F = I exactly for a body at rest, whose
         residual was otherwise that rounding's stress: 6e-8 of the scale of a step at rest,

@@ -15,7 +15,6 @@ consistent mass matrix ẋ = M⁻¹p couples every node to every other (M⁻¹ i
 the sparse Jacobian needs a lumped (diagonal) mass: `Scene(..., mass="lumped")`.
 """
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,10 +59,9 @@ class SemiDiscrete:
 
         # The scene is closed over (its arrays become constants): the least call overhead
         # for host-driven solvers that call these thousands of times.
-        jit = _host_jit
-        self._rhs = jit(lambda t, y: _rhs(scene, t, y, self.lumped))
-        self._energy = jit(lambda y: _energy(scene, y))
-        self._dissipation = jit(lambda y: scene.dissipation_rate(*_xg(scene, y)))
+        self._rhs = _host_jit(lambda t, y: _rhs(scene, t, y, self.lumped))
+        self._energy = _host_jit(lambda y: _energy(scene, y))
+        self._dissipation = _host_jit(lambda y: scene.dissipation_rate(*_xg(scene, y)))
         self.rows = self.cols = None
         if self.lumped:
             self.rows, self.cols = _pattern(scene)
@@ -73,7 +71,7 @@ class SemiDiscrete:
             self._indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // self.n, minlength=self.n))]).astype(
                 np.int32)
             self.nnz = len(uniq)
-            self._jac = jit(lambda t, y: _jac_values(scene, t, y))
+            self._jac = _host_jit(lambda t, y: _jac_values(scene, t, y))
 
     # -- state ---------------------------------------------------------------------
     def pack(self, state: State):
