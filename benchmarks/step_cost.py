@@ -25,7 +25,7 @@ from common import jv, lshape, machine, write_json  # noqa: I001
 
 import jax  # noqa: E402
 from jaxvisco._time_element._step import make_context, residual, predictor  # noqa: E402
-import equinox as eqx  # noqa: E402
+from jaxvisco._config import jit  # noqa: E402
 import numpy as np  # noqa: E402
 
 
@@ -33,7 +33,7 @@ def residual_ms(scene, scheme, h):
     """Median and minimum over repeats of one jitted residual evaluation [ms]."""
     ctx = make_context(scene, scene.initial_state(), 0.0, h)
     U = predictor(scheme, scene, ctx, scene.v0)
-    f = eqx.filter_jit(lambda s, c, u: residual(scheme, s, c, u))
+    f = jit(lambda s, c, u: residual(scheme, s, c, u))  # with the loop's XLA options
     jax.block_until_ready(f(scene, ctx, U))
     t = []
     for _ in range(20):
