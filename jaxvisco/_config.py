@@ -117,7 +117,7 @@ def _top_level():
     return bool(trace_state_clean())
 
 
-def jit(fn=None, *, export=False):
+def jit(fn=None, *, export=False, plain=False):
     """`equinox.filter_jit(fn)`, compiled with `compiler_options()` when called at top
     level. Called inside a trace (e.g. `jax.grad` or `jax.jit` of a `simulate` call) it is
     a plain nested `filter_jit`: the options belong to the outermost program, which the
@@ -125,9 +125,12 @@ def jit(fn=None, *, export=False):
 
     `export=True` (the time loops): at top level, with JAX's persistent cache on
     (`enable_compilation_cache`), the traced program is kept on disk too and a later
-    process skips tracing it (`_export`); calls the key cannot describe run as usual."""
+    process skips tracing it (`_export`); calls the key cannot describe run as usual.
+
+    `plain=True`: `jax.jit` instead of `filter_jit` (every argument an array): the least
+    call overhead, for functions a host-driven solver calls thousands of times."""
     if fn is None:
-        return functools.partial(jit, export=export)
+        return functools.partial(jit, export=export, plain=plain)
     variants = {}
 
     def get():
@@ -136,7 +139,7 @@ def jit(fn=None, *, export=False):
         opts = compiler_options() if _top_level() else {}
         key = tuple(sorted(opts.items()))
         if key not in variants:
-            variants[key] = eqx.filter_jit(fn, compiler_options=opts or None)
+            variants[key] = (jax.jit if plain else eqx.filter_jit)(fn, compiler_options=opts or None)
         return variants[key]
 
     name = f"{fn.__module__}.{fn.__qualname__}"

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from .._config import _top_level, compiler_options
+from .._config import jit
 from .._fem._space import embed_3d
 from .._fem._tensor import sym_to_vec, vec_to_sym
 from .._scene import Scene, State, _right_cauchy_green
@@ -59,9 +59,9 @@ class SemiDiscrete:
 
         # The scene is closed over (its arrays become constants): the least call overhead
         # for host-driven solvers that call these thousands of times.
-        self._rhs = _host_jit(lambda t, y: _rhs(scene, t, y, self.lumped))
-        self._energy = _host_jit(lambda y: _energy(scene, y))
-        self._dissipation = _host_jit(lambda y: scene.dissipation_rate(*_xg(scene, y)))
+        self._rhs = jit(lambda t, y: _rhs(scene, t, y, self.lumped), plain=True)
+        self._energy = jit(lambda y: _energy(scene, y), plain=True)
+        self._dissipation = jit(lambda y: scene.dissipation_rate(*_xg(scene, y)), plain=True)
         self.rows = self.cols = None
         if self.lumped:
             self.rows, self.cols = _pattern(scene)
@@ -71,7 +71,7 @@ class SemiDiscrete:
             self._indptr = np.concatenate([[0], np.cumsum(np.bincount(uniq // self.n, minlength=self.n))]).astype(
                 np.int32)
             self.nnz = len(uniq)
-            self._jac = _host_jit(lambda t, y: _jac_values(scene, t, y))
+            self._jac = jit(lambda t, y: _jac_values(scene, t, y), plain=True)
 
     # -- state ---------------------------------------------------------------------
     def pack(self, state: State):
@@ -121,14 +121,6 @@ class SemiDiscrete:
     def sparsity(self):
         self._need_lumped()
         return sp.csc_matrix((np.ones(self.nnz), self._indices, self._indptr), shape=(self.n, self.n))
-
-
-def _host_jit(fn):
-    """`jax.jit(fn)` with jaxvisco's compile options for calls from the host; inside a JAX
-    trace (a user's `jax.jit` or `jax.grad` around `rhs`) a plain `jax.jit`, since JAX
-    accepts compile options on top-level programs only."""
-    top, inner = jax.jit(fn, compiler_options=compiler_options() or None), jax.jit(fn)
-    return lambda *args: top(*args) if _top_level() else inner(*args)
 
 
 def semidiscrete(scene: Scene) -> SemiDiscrete:
