@@ -105,8 +105,8 @@ class ReeseGovindjee(eqx.Module):
             psi = psi + self.nonequilibrium(C @ inv3(Gamma))
         return psi
 
-    def free_energy_increment(self, C0, dC, Gamma0=None, dGamma=None):
-        r"""$\Psi(C_0 + dC, \Gamma_0 + d\Gamma) - \Psi(C_0, \Gamma_0)$, from the increments.
+    def free_energy_increment(self, C0, dC, Gamma0=None, Gamma1=None):
+        r"""$\Psi(C_0 + dC, \Gamma_1) - \Psi(C_0, \Gamma_0)$, from the increments.
 
         Branch energies that have an ``increment(C, dC)`` method (`NeoHooke`) are
         differenced without cancellation; others as $\psi(C_0 + dC) - \psi(C_0)$. This is
@@ -116,12 +116,12 @@ class ReeseGovindjee(eqx.Module):
         increment, which put a noise floor of ~2e-10 (relative) into the step residual of
         the paper's L-shape at h = 0.1: right at Newton's default tolerance.
         The non-equilibrium branch's increment is
-        $dC_e = dC\,\Gamma_1^{-1} - C_0\Gamma_0^{-1} d\Gamma\,\Gamma_1^{-1}$ (exact)."""
+        $dC_e = dC\,\Gamma_1^{-1} - C_0\Gamma_0^{-1} (\Gamma_1 - \Gamma_0)\,\Gamma_1^{-1}$ (exact)."""
         d = _branch_increment(self.equilibrium, C0, dC)
         if self.has_internal_variable:
-            G0inv, G1inv = inv3(Gamma0), inv3(Gamma0 + dGamma)
+            G0inv, G1inv = inv3(Gamma0), inv3(Gamma1)
             Ce0 = C0 @ G0inv
-            dCe = dC @ G1inv - Ce0 @ dGamma @ G1inv
+            dCe = dC @ G1inv - Ce0 @ (Gamma1 - Gamma0) @ G1inv
             d = d + _branch_increment(self.nonequilibrium, Ce0, dCe)
         return d
 

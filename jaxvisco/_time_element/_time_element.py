@@ -224,7 +224,7 @@ class eG(AbstractTimeElement):
             Gl = jnp.einsum("lI,Iij->lij", V, G)
             Gd = jnp.einsum("lI,Iij->lij", D, G)
             S, dpsi_dG = jax.vmap(material.stress_and_gamma_gradient)(Cbar, Gl)
-            dpsi = material.free_energy_increment(CI[0], dC, G[0], G[-1] - G[0])
+            dpsi = material.free_energy_increment(CI[0], dC, G[0], G[-1])
             power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(w * ddot(dpsi_dG, Gd))
             den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(w * ddot(Gd, Gd))
         beta = (dpsi - power) * den / (den**2 + _BETA_FLOOR**2)
