@@ -130,13 +130,15 @@ def _stack_tables(lines):
 
 def anatomy(scheme_name, dim, refinement, mass, top):
     """Instructions of the optimized time loop per jaxvisco function and per line."""
-    dump = pathlib.Path(tempfile.mkdtemp(prefix="jaxvisco-hlo-"))
-    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_dump_to={dump}".strip())
-    cmd = [sys.executable, __file__, "--worker", f"{scheme_name}|simulate", "--dim", str(dim),
-           "--refinement", str(refinement), "--mass", mass]
-    subprocess.run(cmd, check=True, capture_output=True, env=env)
-    (path,) = dump.glob("*jit__run.cpu_after_optimizations.txt")
-    lines = path.read_text().splitlines()
+    with tempfile.TemporaryDirectory(prefix="jaxvisco-hlo-") as tmp:  # XLA's dump, removed afterwards
+        dump = pathlib.Path(tmp)
+        env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_dump_to={dump}".strip())
+        cmd = [sys.executable, __file__, "--worker", f"{scheme_name}|simulate", "--dim", str(dim),
+               "--refinement", str(refinement), "--mass", mass]
+        subprocess.run(cmd, check=True, capture_output=True, env=env)
+        (path,) = dump.glob("*jit__run.cpu_after_optimizations.txt")
+        lines = path.read_text().splitlines()
+        kernels = sum(1 for p in dump.iterdir() if "jit__run" in p.name and "obj-file" in p.name)
     files, funcs, locs, frames = _stack_tables(lines)
     inclusive, innermost, n = collections.Counter(), collections.Counter(), 0
     for line in lines:
@@ -155,7 +157,6 @@ def anatomy(scheme_name, dim, refinement, mass, top):
             inclusive[key] += 1
         if stack:
             innermost[stack[0]] += 1
-    kernels = sum(1 for p in dump.iterdir() if "jit__run" in p.name and "obj-file" in p.name)
     print(f"{scheme_name}: {n} instructions with a stack, {kernels} compiled kernels ({path.name})")
     print("-- instructions per jaxvisco function (inclusive)")
     for (f, fn), c in inclusive.most_common(top):
