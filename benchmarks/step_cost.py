@@ -1,6 +1,6 @@
 """Cost of one time step: Newton and Krylov iterations, ms per step, compile time.
 
-    python benchmarks/step_cost.py [--quick]
+    python benchmarks/step_cost.py [--quick] [--cases "2D r4 lumped,1,default"] [--out NAME]
 
 Runs eG(1) and eG(2) on the 2D L-shape at refinement 1 and 4 (consistent mass, and
 lumped at refinement 4: issue #16's case) and the 3D L-shape at refinement 1 with
@@ -93,6 +93,10 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--case", default=None, help=argparse.SUPPRESS)  # scene,k,solver,steps (worker)
+    p.add_argument("--cases", default=None,
+                   help="only these cases, 'scene,k,solver' joined by ';' (e.g. '2D r4 lumped,1,default')")
+    p.add_argument("--steps", type=int, default=None, help="steps per timed run (default 40, --quick 10)")
+    p.add_argument("--out", default="step_cost")
     a = p.parse_args(argv)
     if a.case:
         name, k, sv, n = a.case.split(",")
@@ -102,20 +106,23 @@ def main(argv=None):
         r.update(scene=name, solver=sv)
         print("RESULT " + json.dumps(r), flush=True)
         return
-    n = 10 if a.quick else 40
+    n = a.steps or (10 if a.quick else 40)
     mach = machine()
     rows = []
+    only = None if a.cases is None else [tuple(c.split(",")) for c in a.cases.split(";")]
     for name in SCENES:
         for k, sv in CASES:
             if a.quick and (k > 1 or sv == "direct"):
+                continue
+            if only is not None and (name, str(k), sv) not in only:
                 continue
             out = subprocess.run([sys.executable, __file__, "--case", f"{name},{k},{sv},{n}"],
                                  capture_output=True, text=True, check=True).stdout
             r = json.loads(next(line[7:] for line in out.splitlines() if line.startswith("RESULT ")))
             rows.append(r)
             print(json.dumps(r), flush=True)
-    write_json("step_cost.json", dict(machine=mach, settings=dict(
-        quick=a.quick, scheme_solver="eG(1), eG(2); NewtonKrylov() (chord iterations, then Newton-Krylov), "
+    write_json(f"{a.out}.json", dict(machine=mach, settings=dict(
+        quick=a.quick, cases=a.cases, steps=n, scheme_solver="eG(1), eG(2); NewtonKrylov() (chord iterations, then Newton-Krylov), "
                                      "NewtonKrylov(chord=0), NewtonKrylov(linear_solver=Direct())",
         timing="ms_per_step: median of 5 timed runs of n steps; _min: their minimum; residuals_per_step = "
                "ms_per_step_min / residual_eval_ms_min (one jitted residual evaluation, min of 20)"), rows=rows))

@@ -4,7 +4,9 @@
 
 Reads work_precision.json, stability.json, scaling.json, skip_cost.json, step_cost.json,
 profile_step.json and compile_cost.json (whichever exist) and writes the headline numbers
-and the issue's targets, met or not.
+and the targets of the first issues, met or not; `issue_16_targets` states issue #16's
+targets with their measured values (startup.json, step_cost_r4.json or step_cost.json,
+large_steps.json, work_precision_r1.json, work_precision_r3_peers.json, scaling_s17.json).
 """
 
 import json
@@ -120,7 +122,63 @@ def main():
     vals = list(l2d.values())
     out["targets"]["compile time of the L-shape run < 10 s"] = dict(
         met=bool(vals) and max(vals) < 10.0, range_s=[min(vals), max(vals)] if vals else None, values=l2d)
+    out["issue_16_targets"] = _issue16()
     write_json("summary.json", out)
+
+
+# Issue #16's baselines (its text, measured 2026-12-01): 3D hex8 r4 ms per step.
+_ISSUE16_3D_R4_MS = 4048.2
+
+
+def _issue16():
+    """Issue #16's targets, each with its measured value and the file it comes from."""
+    t = {}
+
+    def put(name, value, required, met, source):
+        f = _load(source)
+        t[name] = dict(value=value, required=required, met=bool(met) if value is not None else False,
+                       source=f"results/{source}.json", date=f["machine"]["date"] if f else None)
+
+    su = _load("startup")
+    if su:
+        s = su["summary"]
+        put("second process, first simulate call of the paper scene [s]", s["first_call_cached_s"], "<= 3",
+            s["first_call_cached_s"] <= 3.0, "startup")
+        put("cold first simulate call of the paper scene [s]", s["first_call_cold_s"], "<= 6",
+            s["first_call_cold_s"] <= 6.0, "startup")
+        put("jaxvisco paper --quick, cold [s]", s["paper_quick_cold_s"], "<= 20", s["paper_quick_cold_s"] <= 20.0,
+            "startup")
+    for source in ("step_cost_r4", "step_cost"):
+        row = next((r for r in (_load(source) or {}).get("rows", []) if r.get("scene") == "2D r4 lumped"
+                    and r.get("integrator") == "eG(1)" and r.get("solver") == "default"), None)
+        if row and "rhs_per_step" in row:
+            put("2D r4 eG(1), h = 0.1: right-hand-side evaluations per step", row["rhs_per_step"], "<= 25",
+                row["rhs_per_step"] <= 25.0, source)
+            break
+    ls = _load("large_steps")
+    if ls:
+        for scheme, d in ls["target_by_scheme"].items():
+            put(f"paper scene, h = 1, {scheme}: max Newton iterations per step / rejected steps",
+                [d["newton_max"], d["rejections"]], "<= 4 / 0", d["met"], "large_steps")
+    for name, key, err, peers in (("work_precision_r3_peers", "2D L-shape r3", "0.0001",
+                                   (("diffrax Tsit5", 5.0), ("scipy Radau", 30.0))),
+                                  ("work_precision_r1", "2D L-shape r1", "1e-06", (("scipy Radau", 2.0),))):
+        wp = _load(name)
+        walls = (wp or {}).get("adaptive_summary", {}).get(key, {}).get(err, {}).get("wall_at_error_s", {})
+        eg = [w for m, w in walls.items() if m.startswith("eG") and w is not None]
+        for peer, factor in peers:
+            w = walls.get(peer)
+            ratio = w / min(eg) if (w is not None and eg) else None
+            put(f"{key} at error {float(err):g}: {peer} wall time / best eG's", ratio, f">= {factor:g}",
+                ratio is not None and ratio >= factor, name)
+    sc3 = _load("scaling_s17") or _load("scaling")
+    src = "scaling_s17" if _load("scaling_s17") else "scaling"
+    r4 = next((r for r in (sc3 or {}).get("rows", []) if r.get("element") == "hex8" and r.get("refinement") == 4
+               and "ms_per_step" in r), None)
+    if r4:
+        ratio = _ISSUE16_3D_R4_MS / r4["ms_per_step"]
+        put("3D hex8 r4: issue's 4048 ms per step / now", ratio, ">= 1.5", ratio >= 1.5, src)
+    return t
 
 
 def _met(per_scene, factor):
