@@ -92,7 +92,7 @@ class Scene(eqx.Module):
         _check_orientation(self.disc.JxW)
         shape = (mesh.n_nodes, mesh.dim)
         self.x0 = _field("positions", positions, shape, mesh.points)
-        self.v0 = _field("velocities", velocities, shape, jnp.zeros(shape))
+        self.v0 = _field("velocities", velocities, shape, np.zeros(shape))
         if fixed is None:
             self.fixed = None
         else:
@@ -119,7 +119,7 @@ class Scene(eqx.Module):
         self.prescribed_times = tuple(_time_function(g) for _, g in pairs)
         if material.has_internal_variable:
             gshape = (self.disc.n_cells, self.disc.n_qp, 3, 3)
-            self.gamma0 = _field("gamma", gamma, gshape, jnp.broadcast_to(jnp.eye(3), gshape))
+            self.gamma0 = _field("gamma", gamma, gshape, np.broadcast_to(np.eye(3), gshape))
         elif gamma is not None:
             raise ValueError("gamma was given but the material has no internal variable (nonequilibrium=None).")
         else:
@@ -170,7 +170,7 @@ class Scene(eqx.Module):
                        (jnp.asarray(t, dtype=float),), (jnp.ones((), dtype=float),))[1]
 
     def initial_state(self) -> State:
-        return State(self.x0, self.disc.mass_matvec(self.v0, self.density), self.gamma0)
+        return State(self.x0, _initial_momenta(self.disc, self.v0, self.density), self.gamma0)
 
     @property
     def load(self):
@@ -359,6 +359,13 @@ def _load_pairs(loads, name="loads", what="force"):
             raise ValueError(f"{name}[{i}] must be a pair ({what} (n_nodes, dim), time function or None), got "
                              f"{type(item).__name__}{'' if not hasattr(item, '__len__') else f' of length {len(item)}'}.")
     return pairs
+
+
+@eqx.filter_jit
+def _initial_momenta(disc, v, density):
+    """M v0 as one program (called eagerly, its gathers, products and scatters compiled
+    one by one: 0.3 s of a cold first `simulate` call of the paper scene)."""
+    return disc.mass_matvec(v, density)
 
 
 def _field(name, value, shape, default):

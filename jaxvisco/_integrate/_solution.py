@@ -5,6 +5,7 @@ from typing import Optional
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._config import jit
 from .._scene import State
@@ -75,11 +76,16 @@ class Solution(eqx.Module):
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
                   "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
         out = self
+        # Sliced on the host where the values are concrete: a device slice compiles a small
+        # program per field and length (20 of them, 0.2 s of a cold first call of the paper
+        # scene); traced values (a derivative of the run) are sliced as they are.
+        def cut(a, n):
+            return a[:n] if isinstance(a, jax.core.Tracer) else jnp.asarray(np.asarray(a)[:n])
         for name in frames:
             if getattr(self, name) is not None:
-                out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:ns])
+                out = eqx.tree_at(lambda s: getattr(s, name), out, cut(getattr(self, name), ns))
         for name in STEP_KEYS:
-            out = eqx.tree_at(lambda s: getattr(s, name), out, getattr(self, name)[:nt])
+            out = eqx.tree_at(lambda s: getattr(s, name), out, cut(getattr(self, name), nt))
         return out
 
     def state(self, i=-1) -> State:
