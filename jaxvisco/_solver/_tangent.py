@@ -97,9 +97,9 @@ def empty_tangent(scheme, scene):
 
 
 def _point_tangent(scheme, material, h, F, G, d=3):
-    """Condensed sensitivities at one spatial point (F, G at the k+1 time nodes) with
-    respect to the d x d components of F that a d-dimensional mesh moves, of the d x d
-    components of P that its forces use.
+    """Condensed sensitivities at one spatial point (F, G at the k+1 time nodes): of the
+    d x d components of P that the forces of a d-dimensional mesh use, with respect to
+    the d x d components of F that its motion changes.
 
     In 2D (plane strain) the gradient of a position increment has no out-of-plane
     components, and the assembly reads only the in-plane stresses, so the forward

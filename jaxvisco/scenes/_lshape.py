@@ -27,7 +27,8 @@ def lshape(dim=2, refinement=1, element=None, lam=PAPER["lam"], mu=PAPER["mu"], 
     material = ReeseGovindjee(nh, nh if viscous else None, eta_dev=eta_dev, eta_vol=eta_vol)
     # numpy where the data are concrete (each jnp operation here compiled a small program
     # of its own: 0.3 s of building the scene), jnp where they are traced
-    xp = jnp if any(isinstance(a, jax.core.Tracer) for a in (v_translation, omega)) else np
+    traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves((v_translation, omega)))
+    xp = jnp if traced else np
     X = xp.asarray(mesh.points)
     vT = xp.asarray(v_translation, dtype=float)
     w = xp.asarray(omega, dtype=float)
