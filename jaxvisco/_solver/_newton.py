@@ -31,6 +31,11 @@ from ._linear import GMRES, AbstractLinearSolver, Direct, from_legacy
 from ._sparse import RETAIN
 from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
 
+# The step residual as a program of its own inside the loop: the chord iterations and
+# Newton's linearization call it with the same shapes, so it is traced once and the
+# linearization transforms that trace (XLA inlines it again; the compiled loop is the same).
+_residual = eqx.filter_jit(residual)
+
 
 class NewtonKrylov(eqx.Module):
     """Settings of the nonlinear solver of each time element.
@@ -165,7 +170,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     does), so a full Newton step costs one linearization plus its Krylov vectors; the
     line search's backtracking trials are further passes that skip the solve.
     """
-    res = lambda U: residual(scheme, scene, ctx, U)  # noqa: E731
+    res = lambda U: _residual(scheme, scene, ctx, U)  # noqa: E731
     direct = isinstance(solver.linear_solver, Direct)
     lin = solver.linear_solver
     stale = direct | tangent.stale | (tangent.h != ctx.h)
@@ -225,14 +230,15 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             pending=go_on | ~accept,
         )
 
+    # The residual has the unknowns' structure (`residual`): no trace of it for its shape
+    # (`jax.eval_shape` traced the whole residual again: ~0.4 s of a cold first call).
     zero = jax.tree_util.tree_map(jnp.zeros_like, U0)
-    R_shape = jax.eval_shape(res, U0)
     U_start, chord_its, chord_done = U0, jnp.asarray(0), jnp.asarray(False)
     chord_state = None
     if solver.chord and not direct:
         chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res)
         U_start, chord_its, chord_done = chord_state["U"], chord_state["it"], chord_state["done"]
-    init = dict(U=U_start, R=jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), R_shape),
+    init = dict(U=U_start, R=zero,
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
                 a=jnp.asarray(0.0), n_ls=jnp.asarray(0), it=jnp.asarray(-1), kits=jnp.asarray(0),
                 tan=tangent, refresh=stale, pending=~chord_done)
