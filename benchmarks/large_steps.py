@@ -50,7 +50,8 @@ def main(argv=None):
         machine=machine(), settings=dict(scene="jv.scenes.lshape() (2D r1, consistent mass)", h=a.h, t_end=a.t_end,
                                          solver="NewtonKrylov() defaults (chord iterations, then Newton-Krylov)",
                                          counts="per accepted step; Newton-Krylov iterations exclude chord "
-                                                "iterations and include those of rejected attempts"),
+                                                "iterations and include those of rejected attempts and of "
+                                                "the halved sub-steps"),
         target="eG(1..3): <= 4 Newton iterations per step, no rejected step (issue #16); 'met' counts "
                "Newton-Krylov iterations only, chord iterations (one residual and one block solve each, "
                "on the stored factorization) are given beside them", target_by_scheme=target,

@@ -122,8 +122,9 @@ def main(argv=None):
             rows.append(r)
             print(json.dumps(r), flush=True)
     write_json(f"{a.out}.json", dict(machine=mach, settings=dict(
-        quick=a.quick, cases=a.cases, steps=n, scheme_solver="eG(1), eG(2); NewtonKrylov() (chord iterations, then Newton-Krylov), "
-                                     "NewtonKrylov(chord=0), NewtonKrylov(linear_solver=Direct())",
+        quick=a.quick, cases=a.cases, steps=n,
+        scheme_solver="eG(1), eG(2); NewtonKrylov() (chord iterations, then Newton-Krylov), "
+                      "NewtonKrylov(chord=0), NewtonKrylov(linear_solver=Direct())",
         timing="ms_per_step: median of 5 timed runs of n steps; _min: their minimum; residuals_per_step = "
                "ms_per_step_min / residual_eval_ms_min (one jitted residual evaluation, min of 20)"), rows=rows))
 

@@ -3,9 +3,9 @@ resumed, again and again, ends in the same file as the uninterrupted run.
 
 The instants are drawn from a seeded generator, half of them as a delay after the start
 of the process (imports, scene, frame 0, compilation of the first chunk; the first one
-during the imports), half as a
-short delay after a progress line (a chunk of 1 step is computed and committed every
-few tens of milliseconds, so these land in computation and in writes). A kill before
+during the imports), half as a short delay after a progress line (a chunk of 1 step is
+computed and committed every few tens of milliseconds, so these land in computation and
+in writes). A kill before
 frame 0 is committed leaves no file, and the run is started again; otherwise the run is
 continued with ``--resume``. After every kill the committed frames must equal the
 uninterrupted run's and the restart state must verify; at the end the whole file must.
