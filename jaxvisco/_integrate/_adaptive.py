@@ -171,7 +171,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                  residual=zf, rejections=zi)
     one, zero = jnp.asarray(1.0), jnp.asarray(0)
     init = dict(i=zero, state=state0, t=jnp.asarray(t0, float), h=jnp.clip(h0, ctrl.dtmin, ctrl.dtmax),
-                v=jnp.where(use_v0, v0, v_state0), tan=empty_tangent(scheme, scene), frames=frames,
+                v=jnp.where(use_v0, v0, v_state0), tan=empty_tangent(scheme, scene, solver), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
                 status=jnp.asarray(RUNNING), err1=one, err2=one, its=zero, kits=zero, chord=zero, rej=zero,
                 attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))

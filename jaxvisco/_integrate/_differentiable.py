@@ -114,7 +114,7 @@ def replay(scheme, solver, scene, state0, v0, use_v0, rec, save_gamma, segment):
     ts = jnp.pad(rec.t, (0, pad)).reshape(n_seg, seg)
     hs = jnp.pad(rec.h, (0, pad), constant_values=1.0).reshape(n_seg, seg)
     idx = jnp.arange(n_seg * seg).reshape(n_seg, seg)
-    fresh = empty_tangent(scheme, scene)
+    fresh = empty_tangent(scheme, scene, solver)
     dtype = state0.p.dtype
 
     def attempt(c, t, h):

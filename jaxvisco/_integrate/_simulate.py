@@ -347,7 +347,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
     steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i, chord_iterations=zeros_i,
                  residual=zeros_f, rejections=zeros_i)
     v_init = jnp.where(use_v0, v0, v_state0)
-    init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene),
+    init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene, solver),
                 frames=frames, steps=steps, rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype),
                 n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
                 work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))

@@ -12,10 +12,16 @@ import warnings
 import equinox as eqx
 
 _BACKENDS = ("jaxvisco", "lineax")
+PRECONDITIONERS = ("lu", "amg")
 
 
 class AbstractLinearSolver(eqx.Module):
     """The linear solve of a Newton iteration (`GMRES` or `Direct`)."""
+
+    @property
+    def block_solver(self):
+        """How the condensed position block is solved: ``"lu"`` or ``"amg"``."""
+        return getattr(self, "preconditioner", "lu")
 
 
 class GMRES(AbstractLinearSolver):
@@ -30,11 +36,17 @@ class GMRES(AbstractLinearSolver):
       Arnoldi step, `_fem._krylov.gmres`) or ``"lineax"`` (lineax's `GMRES`, restarted
       every 5 vectors; it checks convergence once per restart cycle and needs two cycles,
       so it costs more Krylov vectors).
+    - `preconditioner`: how the preconditioner solves the condensed position block:
+      ``"lu"`` (default: a sparse LU on the host, exact where the tangent was formed) or
+      ``"amg"`` (one V-cycle of smoothed-aggregation multigrid in JAX, `_amg`: no fill,
+      no host call per Krylov vector, more Krylov vectors; for large 3D meshes). With
+      ``"amg"``, give `refresh_after` room for the vectors a V-cycle needs (e.g. 30).
     """
 
     max_steps: int = eqx.field(static=True, default=60)
     refresh_after: int = eqx.field(static=True, default=5)
     backend: str = eqx.field(static=True, default="jaxvisco")
+    preconditioner: str = eqx.field(static=True, default="lu")
 
     def __check_init__(self):
         if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, int) or self.max_steps < 1:
@@ -43,6 +55,8 @@ class GMRES(AbstractLinearSolver):
             raise ValueError(f"GMRES: refresh_after must be an integer >= 0, got {self.refresh_after!r}.")
         if self.backend not in _BACKENDS:
             raise ValueError(f"GMRES: backend must be one of {_BACKENDS}, got {self.backend!r}.")
+        if self.preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"GMRES: preconditioner must be one of {PRECONDITIONERS}, got {self.preconditioner!r}.")
 
 
 class Direct(AbstractLinearSolver):
@@ -85,4 +99,5 @@ def from_legacy(linear_solver, krylov=None, krylov_max_steps=None, refresh_after
         raise TypeError(f"NewtonKrylov: {', '.join(legacy)} set(s) GMRES, but linear_solver is {linear_solver!r}.")
     return GMRES(max_steps=int(legacy.get("krylov_max_steps", linear_solver.max_steps)),
                  refresh_after=int(legacy.get("refresh_after", linear_solver.refresh_after)),
-                 backend=krylov_backend(krylov) if "krylov" in legacy else linear_solver.backend)
+                 backend=krylov_backend(krylov) if "krylov" in legacy else linear_solver.backend,
+                 preconditioner=linear_solver.preconditioner)

@@ -196,7 +196,8 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         refresh = c["refresh"] | (c["n_ls"] > 0)  # a step that needed backtracking
 
         def newton_step(tan):
-            tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation, solver.retain),
+            tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation, solver.retain,
+                                                              lin.block_solver),
                                lambda: tan)
             precond = lambda r: schur_solve(scheme, scene, ctx, tan, _scaled(r, 1.0 / sx), rotation)  # noqa: E731
             rhs = jax.tree_util.tree_map(jnp.negative, _scaled(Rt, sx))

@@ -24,6 +24,7 @@ import numpy as np
 from .._export import record_pattern, register_pattern
 from .._fem._tensor import small_inv, sym_to_vec, vec_to_sym
 from .._time_element._step import Unknowns, constraint_scale, force_term, nodal_fields
+from . import _amg
 from ._sparse import RETAIN, HostLU, lu_factor, lu_solve
 
 
@@ -83,17 +84,28 @@ class Tangent(eqx.Module):
     Ainv: jax.Array | None  # (n_cells, nq, 6k, 6k) inverse local block
     dG_dF: jax.Array | None  # (n_cells, nq, 6k, k d^2): in-plane components of F in 2D
     dP_dG: jax.Array | None  # (n_cells, nq, nq_t d^2, 6k)
+    mg: _amg.Multigrid | None = None  # the multigrid of the position block (in place of `token`)
 
 
-def empty_tangent(scheme, scene):
-    k, dd = scheme.k, scene.dim**2
+def empty_tangent(scheme, scene, solver=None):
+    """A tangent that is stale: the start of a loop's carry, shaped as `form_tangent`'s
+    output for `solver` (a `NewtonKrylov`; its linear solver decides the block solve)."""
+    k, d, dd = scheme.k, scene.dim, scene.dim**2
     nq_t = len(scheme.matrices()[0]["points"])
-    head = (jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True), jnp.eye(scene.dim))
+    head = (jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True), jnp.eye(d))
+    mg = None
+    if solver is not None and solver.linear_solver.block_solver == "amg":
+        disc = scene.disc
+        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        shapes = jax.eval_shape(lambda A, x: _amg.build(hier, A, x),
+                                jax.ShapeDtypeStruct((hier.levels[0].nnzb, k * d, k * d), float),
+                                jax.ShapeDtypeStruct((disc.n_nodes, d), float))
+        mg = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     if not scene.has_internal_variable:
-        return Tangent(*head, None, None, None)
+        return Tangent(*head, None, None, None, mg)
     ne, nq = scene.disc.n_cells, scene.disc.n_qp
     z = functools.partial(jnp.zeros, dtype=float)
-    return Tangent(*head, z((ne, nq, 6 * k, 6 * k)), z((ne, nq, 6 * k, dd * k)), z((ne, nq, nq_t * dd, 6 * k)))
+    return Tangent(*head, z((ne, nq, 6 * k, 6 * k)), z((ne, nq, 6 * k, dd * k)), z((ne, nq, nq_t * dd, 6 * k)), mg)
 
 
 def _point_tangent(scheme, material, h, F, G, d=3):
@@ -169,13 +181,37 @@ def _map_points(fn, xs):
     return jax.tree_util.tree_map(lambda o: o.reshape((m * b,) + o.shape[2:])[:n], out)
 
 
-def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN) -> Tangent:
-    """Condensed tangent at U: local inverses, sensitivities, and the factored position
-    block $A \\otimes M / h + h\\,\\sum_l W K_l$ (exact, with Γ eliminated). `retain`:
-    factorizations of the pattern the host store keeps alive (`NewtonKrylov.retain`)."""
+def position_blocks(scheme, scene, ctx, dPdF):
+    """Element blocks (ne, k, n_en, d, k, n_en, d) of the position block
+    $A \\otimes M / h + h\\,\\sum_l W K_l$ from the condensed point sensitivities, held
+    rows and columns zeroed, and the diagonal value of the held components (None
+    without held nodes)."""
     m, _ = scheme.matrices()
     k, d, disc = scheme.k, scene.dim, scene.disc
-    _, F, G = nodal_fields(scheme, scene, ctx, U)
+    ne, nq = disc.n_cells, disc.n_qp
+    nq_t = dPdF.shape[2] // (d * d)
+    dPdF = dPdF.reshape(ne, nq, nq_t, d, d, k, d, d)
+    W = jnp.asarray(m["W"])
+    # K[e, J, a, i, I, b, j] = h sum_q JxW sum_l W[J,l] dN[a,A] dPdF[l,i,A,I,j,B] dN[b,B]
+    K = ctx.h * jnp.einsum("eq,Jl,eqaA,eqliAIjB,eqbB->eJaiIbj", disc.JxW, W, disc.dN, dPdF, disc.dN)
+    A = jnp.asarray(m["A"])[:, 1:]
+    Mass = jnp.einsum("JI,eab,ij->eJaiIbj", A, disc.cell_mass(scene.density), jnp.eye(d)) / ctx.h
+    Ke = K + Mass
+    if scene.fixed is None:
+        return Ke, None
+    free = ~scene.fixed.array[disc.cells.array]  # (e, n_en, d)
+    free = np.broadcast_to(free[:, None], (ne, k) + free.shape[1:])
+    Ke = Ke * jnp.asarray(free)[:, :, :, :, None, None, None] * jnp.asarray(free)[:, None, None, None]
+    return Ke, constraint_scale(scene, ctx.h)
+
+
+def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditioner="lu") -> Tangent:
+    """Condensed tangent at U: local inverses, sensitivities, and the position block
+    (`position_blocks`), factored on the host (``preconditioner="lu"``) or as an
+    aggregation multigrid in JAX (``"amg"``, `_amg`). `retain`: factorizations of the
+    pattern the host store keeps alive (`NewtonKrylov.retain`)."""
+    k, d, disc = scheme.k, scene.dim, scene.disc
+    X, F, G = nodal_fields(scheme, scene, ctx, U)
     ne, nq = disc.n_cells, disc.n_qp
     flat = lambda a: None if a is None else a.reshape((ne * nq,) + a.shape[2:])  # noqa: E731
     mats = scene.point_materials()
@@ -187,25 +223,19 @@ def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN) -> Tangent
         out = _map_points(lambda a: _point_tangent(scheme, eqx.combine(a[0], static), ctx.h, a[1], a[2], d=d),
                           (dyn, flat(F), flat(G)))
     dPdF, Ainv, dGdF, dPdG = (None if o is None else o.reshape((ne, nq) + o.shape[1:]) for o in out)
-    nq_t = dPdF.shape[2] // (d * d)
-    dPdF = dPdF.reshape(ne, nq, nq_t, d, d, k, d, d)
-    W = jnp.asarray(m["W"])
-    # K[e, J, a, i, I, b, j] = h sum_q JxW sum_l W[J,l] dN[a,A] dPdF[l,i,A,I,j,B] dN[b,B]
-    K = ctx.h * jnp.einsum("eq,Jl,eqaA,eqliAIjB,eqbB->eJaiIbj", disc.JxW, W, disc.dN, dPdF, disc.dN)
-    A = jnp.asarray(m["A"])[:, 1:]
-    Mass = jnp.einsum("JI,eab,ij->eJaiIbj", A, disc.cell_mass(scene.density), jnp.eye(d)) / ctx.h
-    Ke = K + Mass
-    if scene.fixed is not None:
-        free = ~scene.fixed.array[disc.cells.array]  # (e, n_en, d)
-        free = np.broadcast_to(free[:, None], (ne, k) + free.shape[1:])
-        Ke = Ke * jnp.asarray(free)[:, :, :, :, None, None, None] * jnp.asarray(free)[:, None, None, None]
+    Ke, held = position_blocks(scheme, scene, ctx, dPdF)
+    rotation = jnp.eye(d) if rotation is None else rotation
+    if preconditioner == "amg":
+        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        mg = _amg.build(hier, _amg.fine_blocks(hier, Ke, held), ctx.state.x)
+        return Tangent(jnp.asarray(-1, jnp.int64), ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG, mg)
+    if held is not None:
         n_held = len(_held_dofs(scene.fixed, k, disc.n_nodes, d))
-        data = jnp.concatenate([Ke.reshape(-1), jnp.full(n_held, constraint_scale(scene, ctx.h))])
+        data = jnp.concatenate([Ke.reshape(-1), jnp.full(n_held, held)])
     else:
         data = Ke.reshape(-1)
     host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
     token = lu_factor(host, data, retain)
-    rotation = jnp.eye(d) if rotation is None else rotation
     return Tangent(token, ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG)
 
 
@@ -224,7 +254,6 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     a preconditioner that fits, where the unrotated one degrades within a few steps.
     """
     k, d, disc = scheme.k, scene.dim, scene.disc
-    host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
     R = None if rotation is None else rotation @ tangent.rotation.T
     bx = b.x if R is None else b.x @ R  # R^T b per node
     if b.g is not None:
@@ -236,7 +265,13 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
         if scene.fixed is not None:
             coupling = jnp.where(jnp.asarray(scene.fixed.array)[None], 0.0, coupling)
         bx = bx - coupling
-    dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
+    if tangent.mg is None:
+        host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
+    else:  # one V-cycle on the node-major layout (n, k d)
+        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        nodes = jnp.moveaxis(bx, 0, 1).reshape(disc.n_nodes, k * d)
+        dx = jnp.moveaxis(_amg.vcycle(hier, tangent.mg, nodes).reshape(disc.n_nodes, k, d), 1, 0)
     turn = (lambda v: v) if R is None else (lambda v: v @ R.T)  # R v per node
     if b.g is None:
         return Unknowns(turn(dx), None)
