@@ -45,8 +45,13 @@ from .._fem._tensor import small_inv
 
 # Largest coarsest matrix (unknowns) solved by a dense LU.
 MAX_COARSE = 1500
-# Degree of the Chebyshev–Jacobi smoother before and after the coarse correction.
+# Degree of the Chebyshev–Jacobi smoother before and after the coarse correction
+# (V-cycle rate on the 2D L-shape r4 / 3D r3, eG(1), h = 0.1: degree 2 0.68 / 0.62,
+# 3 0.57 / 0.52, 4 0.50 / 0.40).
 DEGREE = 3
+# Jacobi sweeps on A B = 0 that adapt the rigid modes to the block before aggregation
+# (the mass term lifts them): rates 0.57 -> 0.47 (2D r4), 0.52 -> 0.44 (3D r3) with 4.
+IMPROVE = 4
 
 
 class Level:
@@ -286,6 +291,9 @@ def build(hier: Hierarchy, A0, x) -> Multigrid:
         rhos.append(rho)
         if B is None:
             B = _rigid_modes(hier, x, lv)
+        for _ in range(IMPROVE):  # relax A B = 0 from the rigid modes (pyamg's improve_candidates)
+            AB = jax.vmap(lambda c: _apply(lv, Al, c), in_axes=2, out_axes=2)(B)
+            B = B - (1.0 / rho) * jnp.einsum("nij,njm->nim", Dl, AB)
         b, m = B.shape[1:]
         pad = jnp.concatenate([B, jnp.zeros((1, b, m))])[jnp.asarray(lv.members)]  # (n_c, s, b, m)
         n_c, s = lv.members.shape
