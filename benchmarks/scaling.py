@@ -22,7 +22,15 @@ from common import RESULTS, jv, lshape, machine, write_json  # noqa: I001
 import numpy as np  # noqa: E402
 
 
-def worker(element, refinement, steps, h):
+def solver_for(preconditioner):
+    """The solver of a case: the defaults, or GMRES around one multigrid V-cycle (with
+    room for the Krylov vectors that needs before the tangent is re-formed)."""
+    if preconditioner == "lu":
+        return jv.NewtonKrylov()
+    return jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=preconditioner, refresh_after=30))
+
+
+def worker(element, refinement, steps, h, preconditioner="lu"):
     import resource
 
     t0 = time.perf_counter()
@@ -31,7 +39,8 @@ def worker(element, refinement, steps, h):
     dofs = int(scene.mesh.n_nodes * 3)
 
     def go():
-        return jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, saveat=jv.SaveAt(every=steps))
+        return jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, saveat=jv.SaveAt(every=steps),
+                           solver=solver_for(preconditioner))
 
     t0 = time.perf_counter()
     sol = go()
@@ -40,7 +49,7 @@ def worker(element, refinement, steps, h):
     sol = go()
     wall = time.perf_counter() - t0
     its, kits = np.asarray(sol.newton_iterations), np.asarray(sol.krylov_iterations)
-    out = dict(element=element, refinement=refinement, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
+    out = dict(element=element, refinement=refinement, preconditioner=preconditioner, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
                n_gamma=int(scene.gamma0.size // 9 * 6), steps=steps, h=h, status=sol.status,
                ms_per_step=1e3 * wall / steps, compile_s=first - wall, first_call_s=first, build_s=build_s,
                newton_per_step=float(its.mean()), krylov_per_step=float(kits.mean()),
@@ -48,8 +57,8 @@ def worker(element, refinement, steps, h):
     print("RESULT " + json.dumps(out), flush=True)
 
 
-def run_case(element, refinement, steps, h, timeout):
-    cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h)]
+def run_case(element, refinement, steps, h, timeout, preconditioner="lu"):
+    cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h), preconditioner]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -112,8 +121,8 @@ def plot(rows, path):
 
 def main(argv=None):
     if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--worker":
-        _, _, element, r, steps, h = sys.argv
-        worker(element, int(r), int(steps), float(h))
+        _, _, element, r, steps, h, preconditioner = sys.argv
+        worker(element, int(r), int(steps), float(h), preconditioner)
         return
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="hex8 refinement 1 and 2 only")
@@ -123,6 +132,8 @@ def main(argv=None):
     p.add_argument("--max-dofs", type=int, default=120_000)
     p.add_argument("--steps", type=int, default=None)
     p.add_argument("--out", default="scaling")
+    p.add_argument("--preconditioner", default="lu", choices=("lu", "amg"),
+                   help="block solve of GMRES's preconditioner: host LU (default) or multigrid")
     p.add_argument("--append", action="store_true", help="keep the rows of other elements already in the file")
     p.add_argument("--memory-fraction", type=float, default=0.5,
                    help="skip a case whose peak RSS, extrapolated from the smaller ones, exceeds this fraction "
@@ -134,7 +145,7 @@ def main(argv=None):
     elements = ["hex8"] if a.quick else a.elements.split(",")
     rows = []
     data = dict(machine=machine(), settings=dict(
-        integrator="eG(1)", h=0.1, steps=steps, solver="NewtonKrylov() defaults", mass="consistent",
+        integrator="eG(1)", h=0.1, steps=steps, solver="NewtonKrylov() defaults" if a.preconditioner == "lu" else "GMRES(preconditioner=\"amg\", refresh_after=30)", preconditioner=a.preconditioner, mass="consistent",
         per_case_timeout_s=timeout, max_dofs=a.max_dofs, quick=a.quick,
         peak_memory="ru_maxrss of the subprocess that ran the case (RSS high-water mark)"), rows=rows)
     if a.append and (RESULTS / f"{a.out}.json").exists():
@@ -155,7 +166,7 @@ def main(argv=None):
                 rows.append(dict(element=el, refinement=r, dofs=dofs, status=msg))
                 print(f"{el} r{r}: {msg}", flush=True)
                 break
-            res = run_case(el, r, steps, 0.1, timeout)
+            res = run_case(el, r, steps, 0.1, timeout, a.preconditioner)
             res.setdefault("dofs", dofs)
             rows.append(res)
             print(json.dumps(res), flush=True)

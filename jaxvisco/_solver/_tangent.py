@@ -271,7 +271,7 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     else:  # one V-cycle on the node-major layout (n, k d)
         hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
         nodes = jnp.moveaxis(bx, 0, 1).reshape(disc.n_nodes, k * d)
-        dx = jnp.moveaxis(_amg.vcycle(hier, tangent.mg, nodes).reshape(disc.n_nodes, k, d), 1, 0)
+        dx = jnp.moveaxis(_amg.solve(hier, tangent.mg, nodes).reshape(disc.n_nodes, k, d), 1, 0)
     turn = (lambda v: v) if R is None else (lambda v: v @ R.T)  # R v per node
     if b.g is None:
         return Unknowns(turn(dx), None)
