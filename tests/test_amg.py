@@ -138,3 +138,21 @@ def test_multigrid_path_matches_direct(dim, r, element, held, k, monkeypatch):
     if not held:
         L = np.asarray(sol.angular_momentum)
         assert np.abs(L[-1] - L[0]).max() < 1e-8 * np.abs(L[0]).max()
+
+
+def test_choice_of_the_block_solve(monkeypatch):
+    """"auto" takes the multigrid for 3D meshes from AUTO_AMG_UNKNOWNS position unknowns
+    on; "lu"/"amg" force a path; Direct() always factors; a bad name is refused."""
+    from jaxvisco._solver import _linear
+
+    small3d, small2d = _scene(3, 1), _scene(2, 1)
+    assert jv.GMRES().preconditioner == "auto"
+    assert jv.GMRES().block_solver(small3d) == "lu"
+    monkeypatch.setattr(_linear, "AUTO_AMG_UNKNOWNS", small3d.disc.n_nodes * 3)
+    assert jv.GMRES().block_solver(small3d) == "amg"
+    assert jv.GMRES().block_solver(small2d) == "lu"  # 2D: the LU's fill stays small
+    assert jv.GMRES(preconditioner="lu").block_solver(small3d) == "lu"
+    assert jv.GMRES(preconditioner="amg").block_solver(small2d) == "amg"
+    assert jv.Direct().block_solver(small3d) == "lu"
+    with pytest.raises(ValueError, match=r"GMRES: preconditioner must be one of \('auto', 'lu', 'amg'\), got 'ilu'"):
+        jv.GMRES(preconditioner="ilu")

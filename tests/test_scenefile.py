@@ -356,13 +356,14 @@ def test_scene_file_keys(tmp_path):
 
 
 def test_solver_keys_set_the_gmres(tmp_path):
-    """[solver]'s krylov, krylov_max_steps and refresh_after (file keys of 0.1) fill
-    NewtonKrylov's GMRES."""
+    """[solver]'s krylov, krylov_max_steps and refresh_after (file keys of 0.1) and
+    preconditioner fill NewtonKrylov's GMRES."""
     text = KEYS_TEXT.replace('linear_solver = "direct"', 'linear_solver = "krylov"\nkrylov = "lineax"\n'
-                             'krylov_max_steps = 30\nrefresh_after = 2', 1)
+                             'krylov_max_steps = 30\nrefresh_after = 2\npreconditioner = "amg"', 1)
     (tmp_path / "g.toml").write_text(text)
     solver = read_scene_file(tmp_path / "g.toml").solver
-    assert solver.linear_solver == jv.GMRES(max_steps=30, refresh_after=2, backend="lineax") and solver.rtol == 1e-12
+    assert solver.linear_solver == jv.GMRES(max_steps=30, refresh_after=2, backend="lineax", preconditioner="amg")
+    assert solver.rtol == 1e-12
 
 
 @pytest.mark.parametrize("old,new,message", [
@@ -375,7 +376,10 @@ def test_solver_keys_set_the_gmres(tmp_path):
     ('linear_solver = "direct"', 'linear_solver = "krylov"\nkrylov = "cg"',
      "[solver]: krylov must be one of ('gmres', 'lineax'), got 'cg'."),
     ("chord = 0", "chord = 0\nrefresh_after = 2",
-     "[solver]: krylov, krylov_max_steps and refresh_after set the Krylov solver, but linear_solver = 'direct'."),
+     "[solver]: krylov, krylov_max_steps, refresh_after and preconditioner set the Krylov solver, but linear_solver "
+     "= 'direct'."),
+    ('linear_solver = "direct"', 'linear_solver = "krylov"\npreconditioner = "ilu"',
+     "[solver]: GMRES: preconditioner must be one of ('auto', 'lu', 'amg'), got 'ilu'."),
     ('linear_solver = "direct"', 'linear_solver = "lu"',
      "[solver]: linear_solver must be GMRES(...), Direct() or one of ('krylov', 'direct'), got 'lu'."),
     ('name = "cg"\norder = 2', 'name = "Newmark"\norder = 2', "[integrator]: order: Newmark has no order"),

@@ -104,6 +104,8 @@ order = 1                    # polynomial degree k of cG(k) / eG(k)
 # [solver]                   # optional: Newton settings (jaxvisco.NewtonKrylov, its GMRES)
 # rtol = 1e-10               # also: max_iterations, linear_solver ("krylov"/"direct"),
 #                            # krylov ("gmres"/"lineax"), krylov_max_steps, refresh_after,
+#                            # preconditioner ("auto"/"lu"/"amg": the block solve of
+#                            # GMRES; "amg" is multigrid, for large 3D meshes),
 #                            # line_search, reuse_limit, chord, chord_contraction
 
 [time]

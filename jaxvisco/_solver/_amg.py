@@ -178,7 +178,7 @@ class Hierarchy:
             node = np.repeat(node[None], k, 0).ravel()
             comp = (np.arange(k)[:, None] * dim + comp[None]).ravel()
             self.held_block, self.held_pos = self.levels[0].diag[node], comp.astype(np.int32)
-            self.free = jnp.asarray(np.tile(~np.asarray(held), (1, k)), float)  # (n_nodes, k*d)
+            self.free = np.tile(~np.asarray(held), (1, k)).astype(float)  # (n_nodes, k*d)
 
     def describe(self):
         return [dict(nodes=lv.n, blocks=lv.nnzb) for lv in self.levels]

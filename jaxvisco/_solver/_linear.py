@@ -12,16 +12,24 @@ import warnings
 import equinox as eqx
 
 _BACKENDS = ("jaxvisco", "lineax")
-PRECONDITIONERS = ("lu", "amg")
+PRECONDITIONERS = ("auto", "lu", "amg")
+# Where "auto" switches to the multigrid: 3D meshes with at least this many position
+# unknowns. Measured (3D L-shape hex8, eG(1), h = 0.1, 5 steps, ms/step multigrid / LU):
+# 672 unknowns 21 / 21, 3969 136 / 153, 12 000 560 / 578, 26 871 1183 / 1395-2067;
+# the LU's fill grows faster beyond (benchmarks/results/scaling_amg_s18.json).
+AUTO_AMG_UNKNOWNS = 20_000
 
 
 class AbstractLinearSolver(eqx.Module):
     """The linear solve of a Newton iteration (`GMRES` or `Direct`)."""
 
-    @property
-    def block_solver(self):
-        """How the condensed position block is solved: ``"lu"`` or ``"amg"``."""
-        return getattr(self, "preconditioner", "lu")
+    def block_solver(self, scene):
+        """How the condensed position block of `scene` is solved: ``"lu"`` or ``"amg"``
+        (`GMRES.preconditioner`; ``"auto"`` resolved by the mesh, `Direct` always LU)."""
+        choice = getattr(self, "preconditioner", "lu")
+        if choice != "auto":
+            return choice
+        return "amg" if scene.dim == 3 and scene.disc.n_nodes * 3 >= AUTO_AMG_UNKNOWNS else "lu"
 
 
 class GMRES(AbstractLinearSolver):
@@ -37,16 +45,17 @@ class GMRES(AbstractLinearSolver):
       every 5 vectors; it checks convergence once per restart cycle and needs two cycles,
       so it costs more Krylov vectors).
     - `preconditioner`: how the preconditioner solves the condensed position block:
-      ``"lu"`` (default: a sparse LU on the host, exact where the tangent was formed) or
-      ``"amg"`` (one V-cycle of smoothed-aggregation multigrid in JAX, `_amg`: no fill,
-      no host call per Krylov vector, more Krylov vectors; for large 3D meshes). With
-      ``"amg"``, give `refresh_after` room for the vectors a V-cycle needs (e.g. 30).
+      ``"lu"`` (a sparse LU on the host, exact where the tangent was formed), ``"amg"``
+      (four V-cycles of smoothed-aggregation multigrid in JAX, `_amg`: no fill, no host
+      call, time and memory that grow about linearly with the mesh) or ``"auto"`` (the
+      default: the multigrid for 3D meshes with at least `AUTO_AMG_UNKNOWNS` = 20 000
+      position unknowns, where it measured faster, the LU otherwise).
     """
 
     max_steps: int = eqx.field(static=True, default=60)
     refresh_after: int = eqx.field(static=True, default=5)
     backend: str = eqx.field(static=True, default="jaxvisco")
-    preconditioner: str = eqx.field(static=True, default="lu")
+    preconditioner: str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, int) or self.max_steps < 1:

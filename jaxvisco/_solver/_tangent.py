@@ -94,7 +94,7 @@ def empty_tangent(scheme, scene, solver=None):
     nq_t = len(scheme.matrices()[0]["points"])
     head = (jnp.asarray(-1, jnp.int64), jnp.asarray(jnp.nan), jnp.asarray(True), jnp.eye(d))
     mg = None
-    if solver is not None and solver.linear_solver.block_solver == "amg":
+    if solver is not None and solver.linear_solver.block_solver(scene) == "amg":
         disc = scene.disc
         hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
         shapes = jax.eval_shape(lambda A, x: _amg.build(hier, A, x),
