@@ -13,16 +13,16 @@ V-cycle whose every operation is array arithmetic in the compiled program:
   pattern, and each node's aggregate and slot in it.
 - **In JAX, at every tangent formation** (`build`): the near-null space of elasticity
   (rigid translations and rotations of each aggregate about its centroid, in the
-  positions where the tangent is formed; one copy per time node) is orthonormalized per
-  aggregate (modified Gram–Schmidt in array operations: no LAPACK on stacks of small
-  matrices); that is the tentative prolongator T of unsmoothed aggregation. The coarse
-  operator is the Galerkin product Tᵀ A T formed block by block on the fixed coarse
-  pattern; the smoother is damped block Jacobi with the (k d) x (k d) node blocks
-  (which hold the time coupling of the k nodes), inverted by `small_inv`; the coarsest
-  level is a dense LU.
-- `vcycle` applies one V-cycle; it is a fixed linear map of its right-hand side, so it
-  right-preconditions GMRES like the exact block solve did (more Krylov vectors, no
-  fill, no host).
+  positions where the tangent is formed; one copy per time node), relaxed by a few
+  Jacobi sweeps on A B = 0 and orthonormalized per aggregate (modified Gram–Schmidt in
+  array operations: no LAPACK on stacks of small matrices), is the tentative
+  prolongator T; the smoothed prolongator is P = (I - 4/(3 rho) D^{-1} A) T and the coarse
+  operator the Galerkin product Pᵀ A P, formed block by block on the fixed patterns. The
+  smoother is Chebyshev–Jacobi with the (k d) x (k d) node blocks (which hold the time
+  coupling of the k nodes, inverted by `small_inv`); the coarsest level is a dense LU.
+- `solve` applies `CYCLES` V-cycles as a stationary iteration: a fixed linear map of its
+  right-hand side, so it right-preconditions GMRES like the exact block solve did (no
+  fill, no host call).
 
 Held components are decoupled rows of the block (a scaled identity), so their modes are
 zero in T: the smoother solves them exactly.
