@@ -65,7 +65,7 @@ class Level:
     def __init__(self, rows, cols, n):
         self.rows, self.cols, self.n = rows.astype(np.int32), cols.astype(np.int32), int(n)
         self.diag = _find(rows, cols, np.arange(n), np.arange(n), n)
-        self.agg = self.slot = self.members = self.target = None  # set by `_coarsen`
+        self.agg = self.slot = self.members = None  # set by `_coarsen` (not on the coarsest level)
 
     @property
     def nnzb(self):
@@ -197,9 +197,10 @@ def hierarchy(cells, k, n_nodes, dim, fixed=None) -> Hierarchy:
 
 
 class Multigrid(eqx.Module):
-    """The numeric multigrid of one tangent: per level the blocks A (nnzb, b, b), the
-    inverted diagonal blocks, the prolongator T (n, b, m) (not on the coarsest level),
-    and the LU of the coarsest matrix."""
+    """The numeric multigrid of one tangent: per level the blocks A (nnzb, b, b); per
+    level but the coarsest the inverted diagonal blocks and the smoothed prolongator P
+    (blocks (b, m) on the level's pattern `p_rows`, `p_cols`); the LU of the coarsest
+    matrix."""
 
     A: tuple
     Dinv: tuple

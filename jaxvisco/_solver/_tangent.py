@@ -211,7 +211,7 @@ def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditi
     aggregation multigrid in JAX (``"amg"``, `_amg`). `retain`: factorizations of the
     pattern the host store keeps alive (`NewtonKrylov.retain`)."""
     k, d, disc = scheme.k, scene.dim, scene.disc
-    X, F, G = nodal_fields(scheme, scene, ctx, U)
+    _, F, G = nodal_fields(scheme, scene, ctx, U)
     ne, nq = disc.n_cells, disc.n_qp
     flat = lambda a: None if a is None else a.reshape((ne * nq,) + a.shape[2:])  # noqa: E731
     mats = scene.point_materials()
@@ -268,7 +268,7 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     if tangent.mg is None:
         host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
         dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
-    else:  # one V-cycle on the node-major layout (n, k d)
+    else:  # `_amg.CYCLES` V-cycles on the node-major layout (n, k d)
         hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
         nodes = jnp.moveaxis(bx, 0, 1).reshape(disc.n_nodes, k * d)
         dx = jnp.moveaxis(_amg.solve(hier, tangent.mg, nodes).reshape(disc.n_nodes, k, d), 1, 0)
