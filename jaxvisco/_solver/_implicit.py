@@ -9,17 +9,30 @@ solve (`schur_solve`) plus iterative refinement. Every piece of that rule is lin
 in the tangents and transposable (the sparse LU solve is a primitive with a transpose
 rule), so reverse mode works through JAX's transposition of the rule: one transposed
 solve per step with the transposed factors, the pattern of optimistix's implicit differentiation.
+
+On the multigrid path (`GMRES(preconditioner="amg")`) the block solve is not exact (a
+few V-cycles), so a fixed number of refinement sweeps would leave an error that depends
+on the mesh: there the system is solved by GMRES to `KRYLOV_RTOL` inside
+`jax.lax.custom_linear_solve`, whose transpose (reverse mode) is GMRES on the
+transposed JVP right-preconditioned by the transposed V-cycles (`jax.linear_transpose`:
+the multigrid solve is a fixed linear map of its right-hand side). That is lineax's
+pattern: a linear solve as a primitive that knows its own transpose.
 """
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._fem._krylov import gmres
 from .._time_element._step import residual
 from ._newton import _scale, solve_step
 from ._tangent import form_tangent, schur_solve
 
 _SWEEPS = 2
+# Relative residual of the multigrid path's implicit solve (and its transpose), and its
+# Krylov vectors at most.
+KRYLOV_RTOL = 1e-12
+KRYLOV_MAX_STEPS = 80
 
 
 def refined_solve(matvec, precond, b, sweeps=_SWEEPS):
@@ -36,6 +49,21 @@ def refined_solve(matvec, precond, b, sweeps=_SWEEPS):
     for _ in range(sweeps):
         y = add(y, precond(sub(b, matvec(y))))
     return y
+
+
+def krylov_solve(matvec, precond, b, rtol=KRYLOV_RTOL, max_steps=KRYLOV_MAX_STEPS):
+    r"""$y = A^{-1} b$ by right-preconditioned GMRES (`precond` $\approx A^{-1}$, linear),
+    as a `jax.lax.custom_linear_solve`: differentiable and transposable in `b`, the
+    transpose solved by GMRES on $A^T$ with the preconditioner's transpose."""
+
+    def solve(A, r):
+        return gmres(A, precond, r, rtol, max_steps)[0]
+
+    def transpose_solve(AT, r):
+        precond_t = jax.linear_transpose(precond, r)
+        return gmres(AT, lambda v: precond_t(v)[0], r, rtol, max_steps)[0]
+
+    return jax.lax.custom_linear_solve(matvec, b, solve, transpose_solve)
 
 
 def materialize_zeros(tangents, primals):
@@ -68,9 +96,11 @@ def _solve_jvp(primals, tangents, *, solver, scheme):
         return eqx.tree_at(lambda r: r.x, R, R.x * sx)
 
     _, jvp = jax.linearize(lambda u: scaled(residual(scheme, scene, ctx, u)), U)
-    tan = form_tangent(scheme, scene, ctx, U, retain=solver.retain)
-    dU = refined_solve(jvp, lambda r: schur_solve(scheme, scene, ctx, tan, unscale(r)),
-                       scaled(jax.tree_util.tree_map(jnp.negative, dR)))
+    block = solver.linear_solver.block_solver(scene)
+    tan = form_tangent(scheme, scene, ctx, U, retain=solver.retain, preconditioner=block)
+    linear = refined_solve if block == "lu" else krylov_solve
+    dU = linear(jvp, lambda r: schur_solve(scheme, scene, ctx, tan, unscale(r)),
+                scaled(jax.tree_util.tree_map(jnp.negative, dR)))
     t_out = jax.tree_util.tree_map(lambda _: None, out)
     t_out = eqx.tree_at(lambda o: o.U, t_out, dU, is_leaf=lambda x: x is None)
     return out, t_out
