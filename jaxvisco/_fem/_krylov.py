@@ -17,8 +17,13 @@ import lineax as lx
 from jax.flatten_util import ravel_pytree
 
 
-def gmres(matvec, precond, b, rtol, max_steps):
+def gmres(matvec, precond, b, rtol, max_steps, recompute=False):
     """Solve ``A x = b`` (A = `matvec`, M^{-1} = `precond`, pytrees alike).
+
+    `recompute`: form the solution as M^{-1} (V y), one more preconditioner application,
+    instead of keeping the `max_steps` preconditioned vectors Z (x = Z y): half the
+    basis memory, for a preconditioner that is a fixed linear map (not flexible GMRES).
+    On the 3D L-shape hex8 r4 (386 295 unknowns with Γ) Z held 177 MB.
 
     **Returns:** `(x, iterations, relative_residual)`.
     """
@@ -29,7 +34,7 @@ def gmres(matvec, precond, b, rtol, max_steps):
     beta = jnp.linalg.norm(b_flat)
     safe_beta = jnp.where(beta > 0, beta, 1.0)
     V = jnp.zeros((m + 1, n)).at[0].set(b_flat / safe_beta)
-    Z = jnp.zeros((m, n))
+    Z = jnp.zeros((0 if recompute else m, n))
     H = jnp.zeros((m + 1, m))
     cs = jnp.zeros(m)
     sn = jnp.zeros(m)
@@ -54,7 +59,8 @@ def gmres(matvec, precond, b, rtol, max_steps):
         hnext = jnp.linalg.norm(w)
         hcol = hcol.at[j + 1].set(hnext)
         V = V.at[j + 1].set(w / jnp.where(hnext > 0, hnext, 1.0))
-        Z = Z.at[j].set(z)
+        if not recompute:
+            Z = Z.at[j].set(z)
 
         # Apply the previous Givens rotations to the new column, then a new one.
         def rot(i, h):
@@ -77,7 +83,7 @@ def gmres(matvec, precond, b, rtol, max_steps):
     active = idx < j
     R = jnp.where(active[:, None] & active[None, :], H[:m, :m], jnp.eye(m))
     y = jax.scipy.linalg.solve_triangular(R, jnp.where(active, g[:m], 0.0), lower=False)
-    x = Z.T @ y
+    x = Minv(V[:m].T @ y) if recompute else Z.T @ y
     return unravel(x), j, jnp.abs(g[j]) / safe_beta
 
 

@@ -57,6 +57,8 @@ DEGREE = 3
 # Jacobi sweeps on A B = 0 that adapt the rigid modes to the block before aggregation
 # (the mass term lifts them): rates 0.57 -> 0.47 (2D r4), 0.52 -> 0.44 (3D r3) with 4.
 IMPROVE = 4
+# Block products of the Galerkin operator formed at a time (`_block_products`).
+PRODUCTS_PER_CHUNK = 1 << 16
 
 
 class Level:
@@ -214,12 +216,45 @@ def _segment_sum(x, ids, n):
     return jax.ops.segment_sum(x, ids, num_segments=n)
 
 
+def _block_products(spec, X, xi, Y, yi, target, n_out):
+    """sum over t of einsum(spec, X[xi[t]], Y[yi[t]]) into output block target[t] (n_out
+    blocks), in chunks of `PRODUCTS_PER_CHUNK` (a `lax.scan` that adds into its carry),
+    so that only one chunk's gathered blocks are alive at a time: the product lists grow
+    with the mesh (A P of the 3D L-shape hex8 r4: 963 739 products, three 3 x 6 or 3 x 3
+    arrays of them at once, 330 MB)."""
+    n = len(xi)
+    out_shape = jax.eval_shape(lambda a, b: jnp.einsum(spec, a, b), X[:1], Y[:1]).shape[1:]
+    if n <= PRODUCTS_PER_CHUNK:
+        return _segment_sum(jnp.einsum(spec, X[jnp.asarray(xi)], Y[jnp.asarray(yi)]), jnp.asarray(target), n_out)
+    c = PRODUCTS_PER_CHUNK
+    m = -(-n // c)
+    pad = lambda a, v: np.concatenate([a, np.full(m * c - n, v, a.dtype)]).reshape(m, c)  # noqa: E731
+    idx = (jnp.asarray(pad(xi, 0)), jnp.asarray(pad(yi, 0)), jnp.asarray(pad(target, n_out)))  # n_out: dropped
+
+    def add(out, chunk):
+        a, b, t = chunk
+        return out.at[t].add(jnp.einsum(spec, X[a], Y[b]), mode="drop"), None
+
+    out, _ = jax.lax.scan(add, jnp.zeros((n_out,) + out_shape, X.dtype), idx)
+    return out
+
+
 def fine_blocks(hier: Hierarchy, Ke, held_value=None):
     """The node blocks (nnzb, k d, k d) of the position block from the element blocks
     Ke (ne, k, n_en, d, k, n_en, d) and the held diagonal `held_value`."""
+    A = _segment_sum(element_node_blocks(Ke), jnp.asarray(hier.element_map), hier.levels[0].nnzb)
+    return add_held(hier, A, held_value)
+
+
+def element_node_blocks(Ke):
+    """Element blocks (ne, k, n_en, d, k, n_en, d) as node-pair blocks (ne n_en n_en, k d, k d),
+    in the order of `Hierarchy.element_map`."""
     ne, k, n_en, d = Ke.shape[:4]
-    blocks = jnp.transpose(Ke, (0, 2, 5, 1, 3, 4, 6)).reshape(ne * n_en * n_en, k * d, k * d)
-    A = _segment_sum(blocks, jnp.asarray(hier.element_map), hier.levels[0].nnzb)
+    return jnp.transpose(Ke, (0, 2, 5, 1, 3, 4, 6)).reshape(ne * n_en * n_en, k * d, k * d)
+
+
+def add_held(hier: Hierarchy, A, held_value):
+    """The node blocks A with the held components' diagonal value added."""
     if hier.held is not None:
         A = A.at[hier.held_block, hier.held_pos, hier.held_pos].add(held_value)
     return A
@@ -306,15 +341,12 @@ def build(hier: Hierarchy, A0, x) -> Multigrid:
         Q, R, dead = _orthonormalize(pad.reshape(n_c, s * b, m))
         T = Q.reshape(n_c, s, b, m)[jnp.asarray(lv.agg), jnp.asarray(lv.slot)]  # (n, b, m)
         # smoothed prolongator P = (I - w D^-1 A) T, w = 4 / (3 rho(D^-1 A))
-        Z = _segment_sum(jnp.einsum("nbc,ncm->nbm", Al, T[jnp.asarray(lv.cols)]), jnp.asarray(lv.z_target),
-                         len(lv.p_rows))
+        Z = _block_products("nbc,ncm->nbm", Al, np.arange(lv.nnzb), T, lv.cols, lv.z_target, len(lv.p_rows))
         Pl = -(4.0 / (3.0 * rho)) * jnp.einsum("nbc,ncm->nbm", Dl[jnp.asarray(lv.p_rows)], Z)
         Pl = Pl.at[jnp.asarray(lv.p_diag)].add(T)
         P.append(Pl)
-        AP = _segment_sum(jnp.einsum("nbc,ncm->nbm", Al[jnp.asarray(lv.ap_a)], Pl[jnp.asarray(lv.ap_p)]),
-                          jnp.asarray(lv.ap_t), lv.ap_n)
-        Ac = _segment_sum(jnp.einsum("nbm,nbp->nmp", Pl[jnp.asarray(lv.c_p)], AP[jnp.asarray(lv.c_s)]),
-                          jnp.asarray(lv.c_t), nxt.nnzb)
+        AP = _block_products("nbc,ncm->nbm", Al, lv.ap_a, Pl, lv.ap_p, lv.ap_t, lv.ap_n)
+        Ac = _block_products("nbm,nbp->nmp", Pl, lv.c_p, AP, lv.c_s, lv.c_t, nxt.nnzb)
         # a mode an aggregate cannot carry (two nodes cannot turn about their axis)
         Ac = Ac.at[jnp.asarray(nxt.diag)].add(jax.vmap(jnp.diag)(dead.astype(Ac.dtype)))
         A.append(Ac)

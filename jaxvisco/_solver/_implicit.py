@@ -57,11 +57,11 @@ def krylov_solve(matvec, precond, b, rtol=KRYLOV_RTOL, max_steps=KRYLOV_MAX_STEP
     transpose solved by GMRES on $A^T$ with the preconditioner's transpose."""
 
     def solve(A, r):
-        return gmres(A, precond, r, rtol, max_steps)[0]
+        return gmres(A, precond, r, rtol, max_steps, recompute=True)[0]
 
     def transpose_solve(AT, r):
         precond_t = jax.linear_transpose(precond, r)
-        return gmres(AT, lambda v: precond_t(v)[0], r, rtol, max_steps)[0]
+        return gmres(AT, lambda v: precond_t(v)[0], r, rtol, max_steps, recompute=True)[0]
 
     return jax.lax.custom_linear_solve(matvec, b, solve, transpose_solve)
 

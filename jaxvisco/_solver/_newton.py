@@ -214,7 +214,9 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             if lin.backend == "lineax":
                 dU_s, n_lin = _lineax_gmres(matvec, precond, rhs, eta, lin.max_steps)
             else:
-                dU_s, n_lin, _ = gmres(matvec, precond, rhs, eta, lin.max_steps)
+                # the multigrid's 3D meshes: memory first (`gmres(recompute=True)`)
+                dU_s, n_lin, _ = gmres(matvec, precond, rhs, eta, lin.max_steps,
+                                       recompute=lin.block_solver(scene) == "amg")
             return dU_s, n_lin, tan
 
         def skip(tan):
