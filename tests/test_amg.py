@@ -5,7 +5,8 @@
   cycle, and the factor does not grow from the coarser to the finer mesh beyond a small
   margin.
 - Its building blocks: the Galerkin coarse block equals Pᵀ A P formed densely, and the
-  rigid-body modes lie in the range of the tentative prolongator.
+  rigid-body modes lie in the range of the tentative prolongator; assembled in passes
+  and chunks (as on large meshes), the multigrid equals the one-pass form.
 - A run on the multigrid path ends where the direct (host LU) path does, to the Newton
   tolerance: 2D and 3D (hex8, tet4, hex20), free flight and held nodes, eG(1) and eG(2).
 - Reverse-mode gradients through a run on the multigrid path (the implicit step
@@ -106,6 +107,20 @@ def test_galerkin_blocks_and_rigid_modes(monkeypatch):
     B = B.reshape(n * b, 3)
     coef = np.linalg.lstsq(P, B, rcond=None)[0]
     assert np.abs(P @ coef - B).max() < 0.05 * np.abs(B).max()
+
+
+@pytest.mark.timeout(300)
+def test_chunked_assembly_equals_one_pass(monkeypatch):
+    """The node blocks from passes of elements and the Galerkin products in chunks (how
+    large meshes form them) equal the one-pass forms, held nodes and eG(2) included."""
+    monkeypatch.setattr(_amg, "MAX_COARSE", 40)
+    scene = _scene(3, 1, "hex8", held=True)
+    _, one = _multigrid(scene, jv.eG(2))
+    monkeypatch.setattr(_tangent, "ELEMENTS_PER_PASS", 50)  # 117 elements: 3 passes, the last padded
+    monkeypatch.setattr(_amg, "PRODUCTS_PER_CHUNK", 1000)
+    _, chunked = _multigrid(scene, jv.eG(2))
+    for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(chunked)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-12 * np.abs(np.asarray(a)).max())
 
 
 CASES = [
