@@ -182,7 +182,7 @@ def _map_points(fn, xs):
 
 
 def _element_blocks(scheme, h, JxW, dN, dPdF, cell_mass, free):
-    """Element blocks (ne, k, n_en, d, k, n_en, d) of $A \otimes M / h + h\,\sum_l W K_l$
+    """Element blocks (ne, k, n_en, d, k, n_en, d) of $A \\otimes M / h + h\\,\\sum_l W K_l$
     for the elements whose arrays are given (`free`: (ne, n_en, d) mask of the components
     not held, or None)."""
     m, _ = scheme.matrices()
@@ -208,7 +208,7 @@ def _free(scene):
 
 def position_blocks(scheme, scene, ctx, dPdF):
     """Element blocks (ne, k, n_en, d, k, n_en, d) of the position block
-    $A \otimes M / h + h\,\sum_l W K_l$ from the condensed point sensitivities, held
+    $A \\otimes M / h + h\\,\\sum_l W K_l$ from the condensed point sensitivities, held
     rows and columns zeroed, and the diagonal value of the held components (None
     without held nodes)."""
     disc = scene.disc
