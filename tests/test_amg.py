@@ -16,6 +16,7 @@
 The meshes here are small, so `MAX_COARSE` is lowered to force several levels.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -163,8 +164,6 @@ def test_gradient_on_the_multigrid_path_matches_finite_differences(monkeypatch):
     """3D hex8 with held nodes, 4 steps of eG(1): d loss / d (log eta_dev, log eta_vol,
     velocity scale) by reverse mode against fourth-order central differences (eps = 1e-2,
     truncation ~1e-8; the loss varies over O(1) in these parameters)."""
-    import equinox as eqx
-
     monkeypatch.setattr(_amg, "MAX_COARSE", 40)
     scene = _scene(3, 1, "hex8", held=True)
     solver = jv.NewtonKrylov(rtol=1e-12, linear_solver=jv.GMRES(preconditioner="amg"))

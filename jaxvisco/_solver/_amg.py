@@ -216,20 +216,27 @@ def _segment_sum(x, ids, n):
     return jax.ops.segment_sum(x, ids, num_segments=n)
 
 
+def chunked(a, size, fill):
+    """The host index array `a` (n, ...) padded with `fill` to a multiple of `size` rows
+    and split into chunks (m, size, ...), for a `lax.scan` that adds each chunk into its
+    carry (a `fill` beyond the output's last block is dropped by ``mode="drop"``)."""
+    a = np.asarray(a)
+    m = -(-len(a) // size)
+    pad = np.full((m * size - len(a),) + a.shape[1:], fill, a.dtype)
+    return np.concatenate([a, pad]).reshape((m, size) + a.shape[1:])
+
+
 def _block_products(spec, X, xi, Y, yi, target, n_out):
     """sum over t of einsum(spec, X[xi[t]], Y[yi[t]]) into output block target[t] (n_out
     blocks), in chunks of `PRODUCTS_PER_CHUNK` (a `lax.scan` that adds into its carry),
     so that only one chunk's gathered blocks are alive at a time: the product lists grow
     with the mesh (A P of the 3D L-shape hex8 r4: 963 739 products, three 3 x 6 or 3 x 3
     arrays of them at once, 330 MB)."""
-    n = len(xi)
-    out_shape = jax.eval_shape(lambda a, b: jnp.einsum(spec, a, b), X[:1], Y[:1]).shape[1:]
-    if n <= PRODUCTS_PER_CHUNK:
-        return _segment_sum(jnp.einsum(spec, X[jnp.asarray(xi)], Y[jnp.asarray(yi)]), jnp.asarray(target), n_out)
     c = PRODUCTS_PER_CHUNK
-    m = -(-n // c)
-    pad = lambda a, v: np.concatenate([a, np.full(m * c - n, v, a.dtype)]).reshape(m, c)  # noqa: E731
-    idx = (jnp.asarray(pad(xi, 0)), jnp.asarray(pad(yi, 0)), jnp.asarray(pad(target, n_out)))  # n_out: dropped
+    if len(xi) <= c:
+        return _segment_sum(jnp.einsum(spec, X[jnp.asarray(xi)], Y[jnp.asarray(yi)]), jnp.asarray(target), n_out)
+    out_shape = jax.eval_shape(lambda a, b: jnp.einsum(spec, a, b), X[:1], Y[:1]).shape[1:]
+    idx = (jnp.asarray(chunked(xi, c, 0)), jnp.asarray(chunked(yi, c, 0)), jnp.asarray(chunked(target, c, n_out)))
 
     def add(out, chunk):
         a, b, t = chunk

@@ -233,13 +233,10 @@ def node_blocks(scheme, scene, ctx, dPdF, hier):
     if ne <= ELEMENTS_PER_PASS:
         return _amg.fine_blocks(hier, position_blocks(scheme, scene, ctx, dPdF)[0], held)
     c = ELEMENTS_PER_PASS
-    passes = -(-ne // c)
-    order = np.concatenate([np.arange(ne), np.zeros(passes * c - ne, np.int64)]).reshape(passes, c)
-    n_en = disc.cells.array.shape[1]
-    emap = np.asarray(hier.element_map).reshape(ne, n_en * n_en)
+    order = _amg.chunked(np.arange(ne), c, 0)
     # the padding elements (copies of element 0) land beyond the last block: dropped
-    target = np.concatenate([emap, np.full((passes * c - ne, n_en * n_en), hier.levels[0].nnzb)])
-    target = target.reshape(passes, c * n_en * n_en)
+    target = _amg.chunked(np.asarray(hier.element_map).reshape(ne, -1), c, hier.levels[0].nnzb)
+    target = target.reshape(len(order), -1)
     JxW, dN, mass, free = disc.JxW, disc.dN, disc.cell_mass(scene.density), _free(scene)
 
     def add(A, chunk):
