@@ -89,15 +89,16 @@ def test_galerkin_blocks_and_rigid_modes(monkeypatch):
     lv, n, b = hier.levels[0], scene.disc.n_nodes, 2
 
     def dense(level):
-        size = hier.levels[level].n * mg.A[level].shape[-1]
+        size = hier.levels[level].n * _amg.block_size(mg, level)
         E = jnp.eye(size).reshape(size, hier.levels[level].n, -1)
         return np.asarray(jax.vmap(lambda e: _amg.matvec(hier, mg, e, level))(E).reshape(size, size)).T
 
     A, Ac = dense(0), dense(1)
-    m = mg.P[0].shape[-1]
+    Pb = np.asarray(_amg.prolongator_blocks(hier, mg, 0))
+    m = Pb.shape[-1]
     P = np.zeros((n * b, len(lv.members) * m))
     for blk, (i, I) in enumerate(zip(lv.p_rows, lv.p_cols)):
-        P[i * b:(i + 1) * b, I * m:(I + 1) * m] += np.asarray(mg.P[0][blk])
+        P[i * b:(i + 1) * b, I * m:(I + 1) * m] += Pb[blk]
     np.testing.assert_allclose(Ac, P.T @ A @ P, rtol=0, atol=1e-10 * np.abs(Ac).max())
     # P = (I - w D^-1 A) T keeps what A maps to nearly zero: the rigid modes of the mesh
     # lie in the range of P up to the smoothing of their (small) image under A.

@@ -20,6 +20,8 @@ V-cycle whose every operation is array arithmetic in the compiled program:
   operator the Galerkin product Pᵀ A P, formed block by block on the fixed patterns. The
   smoother is Chebyshev–Jacobi with the (k d) x (k d) node blocks (which hold the time
   coupling of the k nodes, inverted by `small_inv`); the coarsest level is a dense LU.
+  The cycles read every operator row-padded (`_ell`: each node's blocks side by side,
+  padded with a zero block), so a product is a gather and a reduction, never a scatter.
 - `solve` applies `CYCLES` V-cycles as a stationary iteration: a fixed linear map of its
   right-hand side, so it right-preconditions GMRES like the exact block solve did (no
   fill, no host call).
@@ -49,6 +51,8 @@ MAX_COARSE = 1500
 # of the step residual (3D L-shape hex8 r4, eG(1): 238 ms) and a V-cycle 22 ms, so a
 # closer block solve pays: ms/step (Krylov vectors/step) 1 cycle 3297 (15.7), 4 cycles
 # 1284 (2.0), 8 cycles 1475 (1.5); the host LU path 2067 (same runs, 3-4 steps, h = 0.1).
+# With the row-padded operators (V-cycle 16-18 ms there) degree/cycles 3/4 2105, 4/3 1942,
+# 4/4 2236, 2/4 2540 ms/step (5 steps): the first three within the machine's noise.
 CYCLES = 4
 # Degree of the Chebyshev–Jacobi smoother before and after the coarse correction
 # (V-cycle rate on the 2D L-shape r4 / 3D r3, eG(1), h = 0.1: degree 2 0.68 / 0.62,
@@ -67,6 +71,7 @@ class Level:
     def __init__(self, rows, cols, n):
         self.rows, self.cols, self.n = rows.astype(np.int32), cols.astype(np.int32), int(n)
         self.diag = _find(rows, cols, np.arange(n), np.arange(n), n)
+        self.ell, self.ell_cols = _ell(self.rows, self.cols, n)
         self.agg = self.slot = self.members = None  # set by `_coarsen` (not on the coarsest level)
 
     @property
@@ -81,6 +86,21 @@ def _find(rows, cols, r, c, n):
     pos = np.searchsorted(key, want)
     assert np.all(key[pos] == want)
     return pos.astype(np.int32)
+
+
+def _ell(rows, other, n):
+    """Row-padded ("ELLPACK") layout of the blocks with rows `rows` (any order): for each
+    of the n rows, the positions of its blocks in the list (n, w), padded with len(rows),
+    which points at a zero block appended to the list, and the `other` index (column) of
+    each (padding: 0)."""
+    rows = np.asarray(rows)
+    order = np.argsort(rows, kind="stable")
+    counts = np.bincount(rows, minlength=n)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.arange(len(rows)) - start[rows[order]]
+    idx = np.full((n, max(int(counts.max(initial=0)), 1)), len(rows), np.int32)
+    idx[rows[order], slot] = order
+    return idx, np.append(np.asarray(other, np.int32), np.int32(0))[idx]
 
 
 def _pattern(rows, cols, n):
@@ -142,6 +162,8 @@ def _coarsen(level):
     zr, zc, level.z_target = _pattern(level.rows, agg[level.cols], n_c)
     level.p_rows, level.p_cols = i32(zr), i32(zc)
     level.p_diag = i32(_find(zr, zc, np.arange(level.n), agg, n_c))
+    level.p_ell, level.p_ell_cols = _ell(zr, zc, level.n)  # prolongation: P's blocks by row
+    level.r_ell, level.r_ell_rows = _ell(zc, zr, n_c)  # restriction: by column (P^T's rows)
     # A P: A's block (i, j) times P's blocks in row j
     q, p, r, c = _products(level.rows, level.cols, _ptr(zr, level.n), zc)
     apr, apc, t = _pattern(r, c, n_c)
@@ -199,14 +221,16 @@ def hierarchy(cells, k, n_nodes, dim, fixed=None) -> Hierarchy:
 
 
 class Multigrid(eqx.Module):
-    """The numeric multigrid of one tangent: per level the blocks A (nnzb, b, b); per
-    level but the coarsest the inverted diagonal blocks and the smoothed prolongator P
-    (blocks (b, m) on the level's pattern `p_rows`, `p_cols`); the LU of the coarsest
-    matrix."""
+    """The numeric multigrid of one tangent, its blocks row-padded (n, w, a, c) as its
+    cycles read them (`_ell`, `_ell_apply`): per level the blocks of A; per level but the
+    coarsest the inverted diagonal blocks (n, b, b) and the smoothed prolongator P, by
+    rows (n, w, b, m: prolongation) and by columns (n_c, w, b, m: restriction); the LU
+    of the coarsest matrix."""
 
     A: tuple
     Dinv: tuple
     P: tuple
+    R: tuple
     rho: jax.Array  # estimated spectral radius of D^-1 A per level (the smoother's interval)
     lu: jax.Array
     piv: jax.Array
@@ -310,69 +334,106 @@ def _orthonormalize(X, tol=1e-10):
     return jnp.stack(Q, -1), jnp.stack(R, -1), jnp.stack(dead, -1)  # R[..., i, j]
 
 
-def _spectral_radius(lv, A, Dinv, iterations=40):
+def _to_ell(blocks, idx):
+    """Blocks (nnz, a, c) in the row-padded layout (n, w, a, c) of `idx` (`_ell`)."""
+    padded = jnp.concatenate([blocks, jnp.zeros((1,) + blocks.shape[1:], blocks.dtype)])
+    return padded[jnp.asarray(idx)]
+
+
+def _ell_apply(E, cols, x):
+    """Row-padded blocks E (n, w, a, c) with columns `cols` (n, w) times x (N, c): (n, a).
+
+    Why this layout: a gather and a reduction over each row's blocks, no scatter. With
+    jaxvisco's XLA options (`_config`) on the 3D L-shape hex8 r4 (214 933 blocks of
+    3 x 3, eG(1); 10 products in a jitted loop, medians): 1.0 ms per product, where the
+    (nnzb, b, b) blocks with a sorted `segment_sum` took 3.3 ms and the component-major
+    layout (a, c, n, w) 1.8 ms (XLA's defaults: 5.3 / 5.3 / 1.85 ms)."""
+    return jnp.sum(E * x[jnp.asarray(cols)][:, :, None, :], axis=(1, 3))
+
+
+def _restrict(R, rows, r):
+    """Pᵀ r from P's blocks by column R (n_c, w, b, m) with their rows `rows`: (n_c, m)."""
+    return jnp.sum(R * r[jnp.asarray(rows)][:, :, :, None], axis=(1, 2))
+
+
+def _dmul(Dinv, r):
+    """The inverted diagonal blocks (n, b, b) times r (n, b)."""
+    return jnp.sum(Dinv * r[:, None, :], axis=-1)
+
+
+def block_size(mg: Multigrid, level=0):
+    """Unknowns per node of a level (k d on the finest, k r on the coarser ones)."""
+    return mg.A[level].shape[-1]
+
+
+def prolongator_blocks(hier: Hierarchy, mg: Multigrid, level=0):
+    """P's blocks (n_p, b, m) in the order of its pattern (`Level.p_rows`, `p_cols`)."""
+    lv = hier.levels[level]
+    r, w = np.nonzero(lv.p_ell < len(lv.p_rows))
+    order = np.argsort(lv.p_ell[r, w])
+    return mg.P[level][r[order], w[order]]
+
+
+def _spectral_radius(lv, E, Dinv, iterations=40):
     """Power-iteration estimate of the spectral radius of D^{-1} A (the Chebyshev
     smoother's interval ends at 1.1 times it). Measured on the 2D L-shape (refinement 16,
     eG(1), h = 0.1): 12 iterations gave 2.12 where 300 gave 2.55, and the V-cycle
     diverged; 50 gave 2.52. The row-sum bound (guaranteed, 3.43 there) kept it stable but
     cost 1.4-1.6x the Krylov vectors (2D r4, r16; 3D r2, r4)."""
-    v = jnp.cos(jnp.arange(lv.n * A.shape[-1], dtype=float) * 0.618).reshape(lv.n, -1) + 1.0
+    v = jnp.cos(jnp.arange(lv.n * E.shape[-1], dtype=float) * 0.618).reshape(lv.n, -1) + 1.0
 
     def step(_, v):
-        w = jnp.einsum("nij,nj->ni", Dinv, _apply(lv, A, v))
+        w = _dmul(Dinv, _ell_apply(E, lv.ell_cols, v))
         return w / jnp.linalg.norm(w)
 
     v = jax.lax.fori_loop(0, iterations, step, v / jnp.linalg.norm(v))
-    return jnp.linalg.norm(jnp.einsum("nij,nj->ni", Dinv, _apply(lv, A, v)))
+    return jnp.linalg.norm(_dmul(Dinv, _ell_apply(E, lv.ell_cols, v)))
 
 
 def build(hier: Hierarchy, A0, x) -> Multigrid:
     """The multigrid of the position block with node blocks `A0` (`fine_blocks`), for
     the nodal positions `x` (n_nodes, d) where the tangent is formed."""
-    A, Dinv, P, rhos = [A0], [], [], []
-    B = None
+    E, Dinv, P, R, rhos = [], [], [], [], []
+    Al, B = A0, None
     for lv, nxt in zip(hier.levels[:-1], hier.levels[1:]):
-        Al = A[-1]
-        Dl = jax.vmap(small_inv)(Al[lv.diag])
+        El = _to_ell(Al, lv.ell)
+        Dl = jax.vmap(small_inv)(Al[lv.diag])  # (n, b, b)
+        rho = _spectral_radius(lv, El, Dl)
+        E.append(El)
         Dinv.append(Dl)
-        rho = _spectral_radius(lv, Al, Dl)
         rhos.append(rho)
         if B is None:
             B = _rigid_modes(hier, x, lv)
         for _ in range(IMPROVE):  # relax A B = 0 from the rigid modes (pyamg's improve_candidates)
-            AB = jax.vmap(lambda c: _apply(lv, Al, c), in_axes=2, out_axes=2)(B)
+            AB = jax.vmap(lambda c: _ell_apply(El, lv.ell_cols, c), in_axes=2, out_axes=2)(B)
             B = B - (1.0 / rho) * jnp.einsum("nij,njm->nim", Dl, AB)
         b, m = B.shape[1:]
         pad = jnp.concatenate([B, jnp.zeros((1, b, m))])[jnp.asarray(lv.members)]  # (n_c, s, b, m)
         n_c, s = lv.members.shape
-        Q, R, dead = _orthonormalize(pad.reshape(n_c, s * b, m))
+        Q, Rq, dead = _orthonormalize(pad.reshape(n_c, s * b, m))
         T = Q.reshape(n_c, s, b, m)[jnp.asarray(lv.agg), jnp.asarray(lv.slot)]  # (n, b, m)
         # smoothed prolongator P = (I - w D^-1 A) T, w = 4 / (3 rho(D^-1 A))
         Z = _block_products("nbc,ncm->nbm", Al, np.arange(lv.nnzb), T, lv.cols, lv.z_target, len(lv.p_rows))
         Pl = -(4.0 / (3.0 * rho)) * jnp.einsum("nbc,ncm->nbm", Dl[jnp.asarray(lv.p_rows)], Z)
         Pl = Pl.at[jnp.asarray(lv.p_diag)].add(T)
-        P.append(Pl)
+        P.append(_to_ell(Pl, lv.p_ell))
+        R.append(_to_ell(Pl, lv.r_ell))
         AP = _block_products("nbc,ncm->nbm", Al, lv.ap_a, Pl, lv.ap_p, lv.ap_t, lv.ap_n)
         Ac = _block_products("nbm,nbp->nmp", Pl, lv.c_p, AP, lv.c_s, lv.c_t, nxt.nnzb)
         # a mode an aggregate cannot carry (two nodes cannot turn about their axis)
-        Ac = Ac.at[jnp.asarray(nxt.diag)].add(jax.vmap(jnp.diag)(dead.astype(Ac.dtype)))
-        A.append(Ac)
-        B = R  # the coarse nodes' modes: X = Q R, so mode j is column j of R (m, m)
+        Al = Ac.at[jnp.asarray(nxt.diag)].add(jax.vmap(jnp.diag)(dead.astype(Ac.dtype)))
+        B = Rq  # the coarse nodes' modes: X = Q R, so mode j is column j of R (m, m)
     last = hier.levels[-1]
-    bl = A[-1].shape[-1]
-    dense = jnp.zeros((last.n, bl, last.n, bl)).at[jnp.asarray(last.rows), :, jnp.asarray(last.cols), :].add(A[-1])
+    E.append(_to_ell(Al, last.ell))
+    bl = Al.shape[-1]
+    dense = jnp.zeros((last.n, bl, last.n, bl)).at[jnp.asarray(last.rows), :, jnp.asarray(last.cols), :].add(Al)
     lu, piv = jax.scipy.linalg.lu_factor(dense.reshape(last.n * bl, last.n * bl))
-    return Multigrid(tuple(A), tuple(Dinv), tuple(P), jnp.stack(rhos) if rhos else jnp.zeros(0), lu, piv)
-
-
-def _apply(lv, A, x):
-    y = jnp.einsum("nij,nj->ni", A, x[jnp.asarray(lv.cols)])
-    return jax.ops.segment_sum(y, jnp.asarray(lv.rows), num_segments=lv.n, indices_are_sorted=True)
+    return Multigrid(tuple(E), tuple(Dinv), tuple(P), tuple(R), jnp.stack(rhos) if rhos else jnp.zeros(0), lu, piv)
 
 
 def matvec(hier: Hierarchy, mg: Multigrid, x, level=0):
     """The level's matrix times x (n, b)."""
-    return _apply(hier.levels[level], mg.A[level], x)
+    return _ell_apply(mg.A[level], hier.levels[level].ell_cols, x)
 
 
 def _chebyshev(lv, A, Dinv, rho, rhs, x):
@@ -382,7 +443,7 @@ def _chebyshev(lv, A, Dinv, rho, rhs, x):
     hi, lo = 1.1 * rho, rho / 30.0
     theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
     sigma = theta / delta
-    res = lambda x: jnp.einsum("nij,nj->ni", Dinv, rhs if x is None else rhs - _apply(lv, A, x))  # noqa: E731
+    res = lambda x: _dmul(Dinv, rhs if x is None else rhs - _ell_apply(A, lv.ell_cols, x))  # noqa: E731
     r = res(x)
     d = r / theta
     x = d if x is None else x + d
@@ -403,13 +464,10 @@ def vcycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
     if level == len(hier.levels) - 1:
         sol = jax.scipy.linalg.lu_solve((mg.lu, mg.piv), rhs.reshape(-1))
         return sol.reshape(rhs.shape)
-    A, Dinv, P, rho = mg.A[level], mg.Dinv[level], mg.P[level], mg.rho[level]
+    A, Dinv, rho = mg.A[level], mg.Dinv[level], mg.rho[level]
     x = _chebyshev(lv, A, Dinv, rho, rhs, None)
-    r = rhs - _apply(lv, A, x)
-    pr, pc = jnp.asarray(lv.p_rows), jnp.asarray(lv.p_cols)
-    rc = _segment_sum(jnp.einsum("nbm,nb->nm", P, r[pr]), pc, len(lv.members))
-    xc = vcycle(hier, mg, rc, level + 1)
-    x = x + jax.ops.segment_sum(jnp.einsum("nbm,nm->nb", P, xc[pc]), pr, num_segments=lv.n, indices_are_sorted=True)
+    rc = _restrict(mg.R[level], lv.r_ell_rows, rhs - _ell_apply(A, lv.ell_cols, x))
+    x = x + _ell_apply(mg.P[level], lv.p_ell_cols, vcycle(hier, mg, rc, level + 1))
     return _chebyshev(lv, A, Dinv, rho, rhs, x)
 
 
