@@ -201,3 +201,27 @@ def test_choice_of_the_block_solve(monkeypatch):
     assert jv.Direct().block_solver(small3d) == "lu"
     with pytest.raises(ValueError, match=r"GMRES: preconditioner must be one of \('auto', 'lu', 'amg'\), got 'ilu'"):
         jv.GMRES(preconditioner="ilu")
+
+
+@pytest.mark.timeout(900)
+def test_restarted_gmres_on_the_multigrid_path(monkeypatch):
+    """GMRES restarted after every 2 vectors (the multigrid path's memory bound, pushed
+    to the limit) ends where the direct path does, to the Newton tolerance, and keeps
+    eG's energy balance; the restarts cost Krylov vectors, not accuracy."""
+    monkeypatch.setattr(_amg, "MAX_COARSE", 40)
+    scene = _scene(2, 2, None, held=True)
+    steps, h = 4, 0.1
+    ends = {}
+    for name, lin in [("lu", jv.GMRES(preconditioner="lu", refresh_after=30)),
+                      ("amg", jv.GMRES(preconditioner="amg", refresh_after=30)),
+                      ("amg2", jv.GMRES(preconditioner="amg", refresh_after=30, restart=2))]:
+        sol = jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, solver=jv.NewtonKrylov(linear_solver=lin, chord=0),
+                          saveat=jv.SaveAt(every=steps))
+        assert sol.status == "done", sol.status
+        ends[name] = sol
+    kits = {n: int(np.sum(s.krylov_iterations)) for n, s in ends.items()}
+    assert kits["amg2"] > kits["amg"], kits
+    scale = np.abs(np.asarray(ends["lu"].x[-1])).max()
+    np.testing.assert_allclose(np.asarray(ends["amg2"].x[-1]), np.asarray(ends["lu"].x[-1]), rtol=0, atol=1e-8 * scale)
+    H, D, W = (np.asarray(a) for a in (ends["amg2"].energy, ends["amg2"].dissipated, ends["amg2"].external_work))
+    assert abs((H[-1] + D[-1] - W[-1]) - H[0]) < 1e-8 * abs(H[0])

@@ -18,6 +18,12 @@ PRECONDITIONERS = ("auto", "lu", "amg")
 # 672 unknowns 21 / 21, 3969 136 / 153, 12 000 560 / 578, 26 871 1183 / 1395-2067;
 # the LU's fill grows faster beyond (benchmarks/results/scaling_amg_s18.json).
 AUTO_AMG_UNKNOWNS = 20_000
+# GMRES's basis on the multigrid path (`GMRES.restart` None): at most this many vectors
+# before a restart. The basis holds every unknown (Γ included: 93 % of them on the 3D
+# L-shape); with 61 rows it was 188 MB of the 782 MB of XLA buffers of the hex8 r4 run
+# and the largest array at the peak (4 cycles keep Krylov vectors per Newton iteration
+# at 2-3 there, so the restart rarely triggers).
+AMG_RESTART = 20
 
 
 class AbstractLinearSolver(eqx.Module):
@@ -30,6 +36,20 @@ class AbstractLinearSolver(eqx.Module):
         if choice != "auto":
             return choice
         return "amg" if scene.dim == 3 and scene.disc.n_nodes * 3 >= AUTO_AMG_UNKNOWNS else "lu"
+
+    def memory_first(self, scene):
+        """Whether a Newton iteration of `scene` saves memory over work: on the
+        multigrid path (large 3D meshes) its JVPs re-run the residual instead of keeping
+        a linearization, and GMRES restarts (`restart_for`) and rebuilds its solution
+        from the basis."""
+        return self.block_solver(scene) == "amg"
+
+    def restart_for(self, scene):
+        """GMRES's basis length for `scene` (`GMRES.restart`; None: no restart)."""
+        restart = getattr(self, "restart", None)
+        if restart is None and self.memory_first(scene):
+            return AMG_RESTART
+        return restart
 
 
 class GMRES(AbstractLinearSolver):
@@ -50,12 +70,17 @@ class GMRES(AbstractLinearSolver):
       call, time and memory that grow about linearly with the mesh) or ``"auto"`` (the
       default: the multigrid for 3D meshes with at least `AUTO_AMG_UNKNOWNS` = 20 000
       position unknowns, where it measured faster, the LU otherwise).
+    - `restart`: Krylov vectors kept before GMRES restarts (None, the default: no
+      restart on the LU path, `AMG_RESTART` = 20 on the multigrid path, where the basis
+      over every unknown is the largest array of a step). `max_steps` bounds the vectors
+      of all cycles together.
     """
 
     max_steps: int = eqx.field(static=True, default=60)
     refresh_after: int = eqx.field(static=True, default=5)
     backend: str = eqx.field(static=True, default="jaxvisco")
     preconditioner: str = eqx.field(static=True, default="auto")
+    restart: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if isinstance(self.max_steps, bool) or not isinstance(self.max_steps, int) or self.max_steps < 1:
@@ -66,6 +91,9 @@ class GMRES(AbstractLinearSolver):
             raise ValueError(f"GMRES: backend must be one of {_BACKENDS}, got {self.backend!r}.")
         if self.preconditioner not in PRECONDITIONERS:
             raise ValueError(f"GMRES: preconditioner must be one of {PRECONDITIONERS}, got {self.preconditioner!r}.")
+        if self.restart is not None and (isinstance(self.restart, bool) or not isinstance(self.restart, int)
+                                         or self.restart < 1):
+            raise ValueError(f"GMRES: restart must be None or an integer >= 1, got {self.restart!r}.")
 
 
 class Direct(AbstractLinearSolver):
@@ -109,4 +137,4 @@ def from_legacy(linear_solver, krylov=None, krylov_max_steps=None, refresh_after
     return GMRES(max_steps=int(legacy.get("krylov_max_steps", linear_solver.max_steps)),
                  refresh_after=int(legacy.get("refresh_after", linear_solver.refresh_after)),
                  backend=krylov_backend(krylov) if "krylov" in legacy else linear_solver.backend,
-                 preconditioner=linear_solver.preconditioner)
+                 preconditioner=linear_solver.preconditioner, restart=linear_solver.restart)

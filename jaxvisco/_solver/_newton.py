@@ -184,6 +184,11 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         Ut = _axpy(c["a"], c["dU"], c["U"])
         if direct:
             Rt, jvp = res(Ut), None
+        elif lin.memory_first(scene):
+            # no linearization kept through the tangent formation and the Krylov loop
+            # (hex8 r4: 103 MB of XLA buffers at the peak); each JVP re-runs the primal
+            Rt = res(Ut)
+            jvp = lambda v: jax.jvp(res, (Ut,), (v,))[1]  # noqa: E731
         else:
             Rt, jvp = jax.linearize(res, Ut)
         sx = jnp.where(first, _scale(ctx, scene, Rt), c["sx"])
@@ -214,9 +219,9 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             if lin.backend == "lineax":
                 dU_s, n_lin = _lineax_gmres(matvec, precond, rhs, eta, lin.max_steps)
             else:
-                # the multigrid's 3D meshes: memory first (`gmres(recompute=True)`)
+                # the multigrid's 3D meshes: memory first (`gmres(recompute=True)`, restarts)
                 dU_s, n_lin, _ = gmres(matvec, precond, rhs, eta, lin.max_steps,
-                                       recompute=lin.block_solver(scene) == "amg")
+                                       recompute=lin.memory_first(scene), restart=lin.restart_for(scene))
             return dU_s, n_lin, tan
 
         def skip(tan):
