@@ -9,6 +9,7 @@ import numpy as np
 
 from ._config import require_x64
 from ._fem._krylov import mass_solve
+from ._fem._passes import POINTS_PER_PASS, map_in_passes
 from ._fem._space import Discretization, StaticArray
 from ._materials import ReeseGovindjee
 from ._time_functions import _time_function
@@ -211,19 +212,27 @@ class Scene(eqx.Module):
         dyn, static = eqx.partition(mats, eqx.is_array)
         return eqx.combine(jax.tree_util.tree_map(lambda a: jnp.repeat(a, self.disc.n_qp, axis=0), dyn), static)
 
-    def map_cells(self, fn, *args):
+    def map_cells(self, fn, *args, per_pass=None):
         """`fn(material, *args_of_one_cell)` over the cells (leading axis of each of
-        `args`, None passes through), each cell with its material."""
+        `args`, None passes through), each cell with its material; `per_pass`: at most
+        this many cells at a time (`_fem._passes`), None: all at once."""
         mats = self.cell_materials()
         if mats is None:
-            return jax.vmap(lambda *a: fn(self.material, *a))(*args)
-        dyn, static = eqx.partition(mats, eqx.is_array)
-        return jax.vmap(lambda d, *a: fn(eqx.combine(d, static), *a))(dyn, *args)
+            dyn, one = None, lambda _, *a: fn(self.material, *a)
+        else:
+            dyn, static = eqx.partition(mats, eqx.is_array)
+            one = lambda d, *a: fn(eqx.combine(d, static), *a)  # noqa: E731
+        n = jax.tree_util.tree_leaves(args)[0].shape[0]
+        if per_pass is None or n <= per_pass:
+            return jax.vmap(one, in_axes=(None if dyn is None else 0,) + (0,) * len(args))(dyn, *args)
+        return map_in_passes(lambda a: jax.vmap(one, in_axes=(None if dyn is None else 0,) + (0,) * len(args))(*a),
+                             (dyn,) + args, per_pass)
 
     def map_points(self, fn, F, G):
         """`fn(material, F, G)` at every spatial quadrature point; F (n_cells, nq, ...) and
-        G alike or None."""
-        return self.map_cells(lambda mat, f, g: jax.vmap(lambda a, b: fn(mat, a, b))(f, g), F, G)
+        G alike or None. Large meshes in passes of `POINTS_PER_PASS` points."""
+        return self.map_cells(lambda mat, f, g: jax.vmap(lambda a, b: fn(mat, a, b))(f, g), F, G,
+                              per_pass=max(1, POINTS_PER_PASS // F.shape[1]))
 
     def _qp_map(self, fn, x, gamma):
         C = _right_cauchy_green(self.disc.deformation_gradient(x))

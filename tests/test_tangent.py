@@ -85,3 +85,32 @@ def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch)
     assert err < 1e-9, err
     if viscous:
         assert isinstance(w, Unknowns) and w.g is not None
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("parts", [False, True], ids=["one-material", "two-parts"])
+def test_residual_in_passes_equals_one_pass(parts, monkeypatch):
+    """Large meshes evaluate the step residual's points in passes (`_fem._passes`): the
+    residual and its JVP equal the one-pass forms, with one material and with a material
+    per cell."""
+    import jaxvisco._scene as scene_module
+
+    if parts:
+        from test_loads import _two_part_scene, _viscous
+        scene, _ = _two_part_scene(_viscous(60.0, 15.0, 5.0, 25.0), _viscous(30.0, 7.5, 10.0, 50.0), rho_left=20.0)
+        assert scene.cell_material is not None
+    else:
+        scene = _scene(True, False)
+    scheme = jv.eG(2)
+    ctx, U, v = _point(scheme, scene)
+
+    def evaluate(ctx, U, v):
+        return jax.jvp(lambda u: residual(scheme, scene, ctx, u), (U,), (v,))
+
+    one = jax.jit(evaluate)(ctx, U, v)
+    cells = 3 if parts else 5  # per pass: several passes, the last one padded (4 and 39 cells)
+    assert scene.disc.n_cells > cells and scene.disc.n_cells % cells
+    monkeypatch.setattr(scene_module, "POINTS_PER_PASS", cells * scene.disc.n_qp)
+    passes = jax.jit(evaluate)(ctx, U, v)
+    for a, b in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(passes)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-13 * np.abs(np.asarray(a)).max())

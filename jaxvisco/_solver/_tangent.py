@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._export import record_pattern, register_pattern
+from .._fem._passes import map_in_passes
 from .._fem._tensor import small_inv, sym_to_vec, vec_to_sym
 from .._time_element._step import Unknowns, constraint_scale, force_term, nodal_fields
 from . import _amg
@@ -168,17 +169,7 @@ def _map_points(fn, xs):
     n = jax.tree_util.tree_leaves(xs)[0].shape[0]
     if n <= _POINTS_PER_PASS:
         return jax.vmap(fn)(xs)
-    b = _POINTS_PER_PASS
-    m = -(-n // b)
-    pad = m * b - n
-
-    def split(a):
-        if pad:
-            a = jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])])
-        return a.reshape((m, b) + a.shape[1:])
-
-    out = jax.lax.map(jax.vmap(fn), jax.tree_util.tree_map(split, xs))
-    return jax.tree_util.tree_map(lambda o: o.reshape((m * b,) + o.shape[2:])[:n], out)
+    return map_in_passes(jax.vmap(fn), xs, _POINTS_PER_PASS)
 
 
 def _element_blocks(scheme, h, JxW, dN, dPdF, cell_mass, free):
