@@ -50,6 +50,8 @@ def worker(element, refinement, steps, h, preconditioner="lu"):
                n_gamma=int(scene.gamma0.size // 9 * 6), steps=steps, h=h, status=sol.status,
                ms_per_step=1e3 * wall / steps, compile_s=first - wall, first_call_s=first, build_s=build_s,
                newton_per_step=float(its.mean()), krylov_per_step=float(kits.mean()),
+               chord_per_step=float(np.asarray(sol.chord_iterations).mean()),
+               krylov_per_newton=float(kits.sum() / max(its.sum(), 1)),
                peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     print("RESULT " + json.dumps(out), flush=True)
 
