@@ -3,8 +3,8 @@
 The position block of a time element (`_tangent`) is a sparse matrix with a (k d) x (k d)
 block per pair of mesh nodes that share an element. The direct path factors it on the
 host (SuperLU): its fill grows superlinearly with the mesh, and every Krylov iteration
-makes a host round trip. This module replaces that factorization with a multigrid
-V-cycle whose every operation is array arithmetic in the compiled program:
+makes a host round trip. This module replaces that factorization with multigrid
+cycles whose every operation is array arithmetic in the compiled program:
 
 - **On the host, once per mesh** (`hierarchy`, cached per pattern like the LU pattern):
   only graphs. Nodes are aggregated by pyamg's standard aggregation on the node graph,
@@ -22,7 +22,7 @@ V-cycle whose every operation is array arithmetic in the compiled program:
   coupling of the k nodes, inverted by `small_inv`); the coarsest level is a dense LU.
   The cycles read every operator row-padded (`_ell`: each node's blocks side by side,
   padded with a zero block), so a product is a gather and a reduction, never a scatter.
-- `solve` applies `CYCLES` V-cycles as a stationary iteration: a fixed linear map of its
+- `solve` applies `CYCLES` W-cycles (`cycle`, `GAMMA`) as a stationary iteration: a fixed linear map of its
   right-hand side, so it right-preconditions GMRES like the exact block solve did (no
   fill, no host call).
 
@@ -47,7 +47,7 @@ from .._fem._tensor import small_inv
 
 # Largest coarsest matrix (unknowns) solved by a dense LU.
 MAX_COARSE = 1500
-# V-cycles per application of the preconditioner (`solve`). A Krylov vector costs a JVP
+# Cycles per application of the preconditioner (`solve`; measured as V-cycles). A Krylov vector costs a JVP
 # of the step residual (3D L-shape hex8 r4, eG(1): 238 ms) and a V-cycle 22 ms, so a
 # closer block solve pays: ms/step (Krylov vectors/step) 1 cycle 3297 (15.7), 4 cycles
 # 1284 (2.0), 8 cycles 1475 (1.5); the host LU path 2067 (same runs, 3-4 steps, h = 0.1).
@@ -58,6 +58,13 @@ CYCLES = 4
 # (V-cycle rate on the 2D L-shape r4 / 3D r3, eG(1), h = 0.1: degree 2 0.68 / 0.62,
 # 3 0.57 / 0.52, 4 0.50 / 0.40).
 DEGREE = 3
+# Cycles of the next level per coarse correction (`cycle`): 1 is a V-cycle, 2 a W-cycle.
+# With V-cycles the rate grew with the depth of the hierarchy (3D L-shape hex8, eG(1),
+# h = 0.1, MAX_COARSE 1500: r2 / r4 / r6 / r8 0.394 / 0.461 / 0.551 / 0.721), while the
+# two-grid rate with a (near) exact level-1 solve stayed at 0.398 / 0.402 (r4 / r6): the
+# inexact coarse solve was what degraded. W-cycles: 0.394 / 0.401 / 0.419 / 0.574; level 1
+# is 20-30x smaller than level 0 (aggregates of 27 nodes), so it costs little more.
+GAMMA = 2
 # Jacobi sweeps on A B = 0 that adapt the rigid modes to the block before aggregation
 # (the mass term lifts them): rates 0.57 -> 0.47 (2D r4), 0.52 -> 0.44 (3D r3) with 4.
 IMPROVE = 4
@@ -457,9 +464,11 @@ def _chebyshev(lv, A, Dinv, rho, rhs, x):
     return x
 
 
-def vcycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
-    """One V-cycle for A x = rhs, from x = 0; `rhs` (n, b) at the level's nodes:
-    Chebyshev–Jacobi smoothing before and after the coarse correction."""
+def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
+    """One multigrid cycle for A x = rhs, from x = 0; `rhs` (n, b) at the level's nodes:
+    Chebyshev–Jacobi smoothing before and after the coarse correction, which takes
+    `GAMMA` cycles of the next level (one where that level is the coarsest: its LU is
+    exact). A fixed linear map of `rhs`."""
     lv = hier.levels[level]
     if level == len(hier.levels) - 1:
         sol = jax.scipy.linalg.lu_solve((mg.lu, mg.piv), rhs.reshape(-1))
@@ -467,15 +476,18 @@ def vcycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
     A, Dinv, rho = mg.A[level], mg.Dinv[level], mg.rho[level]
     x = _chebyshev(lv, A, Dinv, rho, rhs, None)
     rc = _restrict(mg.R[level], lv.r_ell_rows, rhs - _ell_apply(A, lv.ell_cols, x))
-    x = x + _ell_apply(mg.P[level], lv.p_ell_cols, vcycle(hier, mg, rc, level + 1))
+    xc = cycle(hier, mg, rc, level + 1)
+    for _ in range(GAMMA - 1 if level + 2 < len(hier.levels) else 0):
+        xc = xc + cycle(hier, mg, rc - matvec(hier, mg, xc, level + 1), level + 1)
+    x = x + _ell_apply(mg.P[level], lv.p_ell_cols, xc)
     return _chebyshev(lv, A, Dinv, rho, rhs, x)
 
 
 def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None):
-    """`cycles` V-cycles (default `CYCLES`) of x <- x + V(rhs - A x) from x = 0: a fixed
-    linear map of `rhs`, so it preconditions GMRES like one V-cycle, closer to A^{-1}."""
+    """`cycles` cycles (default `CYCLES`) of x <- x + W(rhs - A x) from x = 0: a fixed
+    linear map of `rhs`, so it preconditions GMRES like one cycle, closer to A^{-1}."""
     cycles = CYCLES if cycles is None else cycles
-    x = vcycle(hier, mg, rhs)
+    x = cycle(hier, mg, rhs)
     for _ in range(cycles - 1):
-        x = x + vcycle(hier, mg, rhs - matvec(hier, mg, x))
+        x = x + cycle(hier, mg, rhs - matvec(hier, mg, x))
     return x

@@ -303,7 +303,7 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     if tangent.mg is None:
         host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
         dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
-    else:  # `_amg.CYCLES` V-cycles on the node-major layout (n, k d)
+    else:  # `_amg.CYCLES` multigrid cycles on the node-major layout (n, k d)
         hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
         nodes = jnp.moveaxis(bx, 0, 1).reshape(disc.n_nodes, k * d)
         dx = jnp.moveaxis(_amg.solve(hier, tangent.mg, nodes).reshape(disc.n_nodes, k, d), 1, 0)
