@@ -222,11 +222,11 @@ class Scene(eqx.Module):
         else:
             dyn, static = eqx.partition(mats, eqx.is_array)
             one = lambda d, *a: fn(eqx.combine(d, static), *a)  # noqa: E731
+        batched = lambda a: jax.vmap(one, in_axes=(None if dyn is None else 0,) + (0,) * len(args))(*a)  # noqa: E731
         n = jax.tree_util.tree_leaves(args)[0].shape[0]
         if per_pass is None or n <= per_pass:
-            return jax.vmap(one, in_axes=(None if dyn is None else 0,) + (0,) * len(args))(dyn, *args)
-        return map_in_passes(lambda a: jax.vmap(one, in_axes=(None if dyn is None else 0,) + (0,) * len(args))(*a),
-                             (dyn,) + args, per_pass)
+            return batched((dyn,) + args)
+        return map_in_passes(batched, (dyn,) + args, per_pass)
 
     def map_points(self, fn, F, G):
         """`fn(material, F, G)` at every spatial quadrature point; F (n_cells, nq, ...) and
