@@ -82,6 +82,28 @@ def test_cycle_contracts_independently_of_refinement(monkeypatch):
 
 
 @pytest.mark.timeout(300)
+def test_block_solve_to_a_tolerance(monkeypatch):
+    """`_amg.solve(rtol=)` (the chord iterations' block solve) takes the fewest cycles
+    that reach the tolerance: it equals the fixed solve with that many cycles, whose one
+    cycle fewer misses it; `cycles` caps it."""
+    monkeypatch.setattr(_amg, "MAX_COARSE", 60)
+    scene = _scene(3, 2)
+    hier, mg = _multigrid(scene, jv.eG(1))
+    assert len(hier.levels) >= 3
+    b = jax.random.normal(jax.random.PRNGKey(1), (scene.disc.n_nodes, scene.dim))
+    rel = lambda x: float(jnp.linalg.norm(b - _amg.matvec(hier, mg, x)) / jnp.linalg.norm(b))  # noqa: E731
+    fixed = jax.jit(lambda n: _amg.solve(hier, mg, b, cycles=n), static_argnums=0)
+    for rtol in (3e-2, 1e-6):
+        x = jax.jit(lambda: _amg.solve(hier, mg, b, rtol=rtol))()
+        assert rel(x) <= rtol
+        n = next(n for n in range(1, _amg.MAX_CYCLES + 1) if rel(fixed(n)) <= rtol)
+        assert n >= 2 and rel(fixed(n - 1)) > rtol
+        np.testing.assert_allclose(np.asarray(x), np.asarray(fixed(n)), rtol=0, atol=1e-12 * np.abs(np.asarray(x)).max())
+    capped = jax.jit(lambda: _amg.solve(hier, mg, b, cycles=2, rtol=1e-12))()
+    np.testing.assert_allclose(np.asarray(capped), np.asarray(fixed(2)), rtol=0, atol=1e-12 * np.abs(np.asarray(capped)).max())
+
+
+@pytest.mark.timeout(300)
 def test_galerkin_blocks_and_rigid_modes(monkeypatch):
     monkeypatch.setattr(_amg, "MAX_COARSE", 40)
     scene = _scene(2, 2)
@@ -158,6 +180,38 @@ def test_multigrid_path_matches_direct(dim, r, element, held, k, monkeypatch):
     if not held:
         L = np.asarray(sol.angular_momentum)
         assert np.abs(L[-1] - L[0]).max() < 1e-8 * np.abs(L[0]).max()
+
+
+@pytest.mark.timeout(600)
+def test_chord_iterations_solve_the_block_to_their_tolerance(monkeypatch):
+    """The chord iterations on the multigrid path solve the position block to
+    `_amg.CHORD_RTOL`: made tight, they take the same steps as on the exact host LU
+    (same chord and Newton counts, same end state); with one fixed cycle they need more."""
+    monkeypatch.setattr(_amg, "MAX_COARSE", 40)
+    # `CHORD_RTOL` is read when the loop is traced: no program from memory or from disk
+    monkeypatch.setenv("JAXVISCO_EXPORT", "off")
+    scene = _scene(2, 2)
+    steps, h = 4, 0.1
+
+    def run(pc):
+        jax.clear_caches()
+        solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=pc, refresh_after=30))
+        sol = jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, solver=solver, saveat=jv.SaveAt(every=steps))
+        assert sol.status == "done", sol.status
+        return sol
+
+    lu = run("lu")
+    monkeypatch.setattr(_amg, "CHORD_RTOL", 1e-10)
+    monkeypatch.setattr(_amg, "MAX_CYCLES", 60)
+    tight = run("amg")
+    np.testing.assert_array_equal(np.asarray(tight.chord_iterations), np.asarray(lu.chord_iterations))
+    np.testing.assert_array_equal(np.asarray(tight.newton_iterations), np.asarray(lu.newton_iterations))
+    scale = np.abs(np.asarray(lu.x[-1])).max()
+    np.testing.assert_allclose(np.asarray(tight.x[-1]), np.asarray(lu.x[-1]), rtol=0, atol=1e-8 * scale)
+    monkeypatch.setattr(_amg, "CHORD_RTOL", 0.9)  # one cycle (its rate is ~0.4)
+    loose = run("amg")
+    assert np.sum(loose.chord_iterations) + 5 * np.sum(loose.newton_iterations) > \
+        np.sum(tight.chord_iterations) + 5 * np.sum(tight.newton_iterations)
 
 
 @pytest.mark.timeout(900)

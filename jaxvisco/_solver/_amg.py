@@ -54,6 +54,17 @@ MAX_COARSE = 1500
 # With the row-padded operators (V-cycle 16-18 ms there) degree/cycles 3/4 2105, 4/3 1942,
 # 4/4 2236, 2/4 2540 ms/step (5 steps): the first three within the machine's noise.
 CYCLES = 4
+# The chord iterations' block solve (`_newton._chord`: no Krylov method around it, so it
+# need not be a fixed linear map) cycles until the block residual fell by this factor,
+# at most `MAX_CYCLES` times. A chord iteration contracts no better than its block
+# solve, and `CYCLES` fixed cycles reduce the residual by rate^4: 0.03 at r4 (rate
+# 0.40) but 0.11 at r8 (0.574), where the chord iterations hit their limit (10) every
+# step and a Newton–Krylov iteration finished it. 3D L-shape hex8, eG(1), h = 0.1, 4 steps
+# (r8) / 3 steps (r6), alternating runs, same machine state: r8 29.7 -> 26.2 s/step,
+# chord 10/10/10 + 1 Newton (2 Krylov) per step -> 7/7/9 and none; r6 11.5/12.6 ->
+# 11.4/10.2 s/step, chord 7/8 -> 6/7.
+CHORD_RTOL = 0.02
+MAX_CYCLES = 16
 # Degree of the Chebyshev–Jacobi smoother before and after the coarse correction
 # (V-cycle rate on the 2D L-shape r4 / 3D r3, eG(1), h = 0.1: degree 2 0.68 / 0.62,
 # 3 0.57 / 0.52, 4 0.50 / 0.40).
@@ -483,11 +494,25 @@ def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
     return _chebyshev(lv, A, Dinv, rho, rhs, x)
 
 
-def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None):
+def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None, rtol=None):
     """`cycles` cycles (default `CYCLES`) of x <- x + W(rhs - A x) from x = 0: a fixed
-    linear map of `rhs`, so it preconditions GMRES like one cycle, closer to A^{-1}."""
-    cycles = CYCLES if cycles is None else cycles
-    x = cycle(hier, mg, rhs)
-    for _ in range(cycles - 1):
-        x = x + cycle(hier, mg, rhs - matvec(hier, mg, x))
+    linear map of `rhs`, so it preconditions GMRES like one cycle, closer to A^{-1}.
+
+    With `rtol`, cycles go on until |rhs - A x| <= rtol |rhs| (2-norm) or `cycles`
+    (default `MAX_CYCLES`) were taken: no longer a fixed linear map (not for GMRES)."""
+    if rtol is None:
+        x = cycle(hier, mg, rhs)
+        for _ in range((CYCLES if cycles is None else cycles) - 1):
+            x = x + cycle(hier, mg, rhs - matvec(hier, mg, x))
+        return x
+    bound = rtol * jnp.linalg.norm(rhs)
+
+    def body(c):
+        x, r, i = c
+        x = x + cycle(hier, mg, r)
+        return x, rhs - matvec(hier, mg, x), i + 1
+
+    init = (jnp.zeros_like(rhs), rhs, jnp.asarray(0))
+    cycles = MAX_CYCLES if cycles is None else cycles
+    x, _, _ = jax.lax.while_loop(lambda c: (jnp.linalg.norm(c[1]) > bound) & (c[2] < cycles), body, init)
     return x

@@ -27,6 +27,7 @@ import lineax as lx
 
 from .._fem._krylov import gmres
 from .._time_element._step import residual
+from . import _amg
 from ._linear import GMRES, AbstractLinearSolver, Direct, from_legacy
 from ._sparse import RETAIN
 from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
@@ -264,7 +265,8 @@ def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
     """Chord iterations on the stored factorization: U <- U - P^{-1} R(U), one residual and
     one block solve each, while the residual contracts by `chord_contraction` per
     iteration; stops at convergence (rtol, strictly) or hands the last point reached by
-    a contracting iteration over to Newton–Krylov."""
+    a contracting iteration over to Newton–Krylov. On the multigrid path the block
+    solve cycles to `_amg.CHORD_RTOL` (no Krylov method here needs it linear)."""
 
     def cond(c):
         return c["go"]
@@ -280,7 +282,7 @@ def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
         go = better & ~done & (c["it"] < solver.chord)
         Ut = jax.lax.cond(
             go, lambda: _axpy(1.0, schur_solve(scheme, scene, ctx, tangent, jax.tree_util.tree_map(jnp.negative, R),
-                                               rotation), c["Ut"]), lambda: c["Ut"])
+                                               rotation, _amg.CHORD_RTOL), c["Ut"]), lambda: c["Ut"])
         return dict(U=U, Ut=Ut, norm=jnp.where(better, norm, c["norm"]), prev=jnp.where(better, c["norm"], c["prev"]),
                     sx=sx, it=c["it"] + 1, done=done, go=go)
 

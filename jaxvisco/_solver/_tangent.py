@@ -278,7 +278,7 @@ def _matvec(A, b):
     return jnp.sum(A * b[..., None, :], axis=-1)
 
 
-def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None) -> Unknowns:
+def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None, block_rtol=None) -> Unknowns:
     """Solve the linearized step equations with the condensed tangent (exact where the
     tangent was formed).
 
@@ -287,6 +287,11 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     stresses P = F S turn with it and C, Γ do not, so the Jacobian becomes T J Tᵀ with
     T = diag(R on positions, 1 on Γ), and its inverse T J⁻¹ Tᵀ. A body that spins keeps
     a preconditioner that fits, where the unrotated one degrades within a few steps.
+
+    `block_rtol`: on the multigrid path, cycle until the position block's residual fell
+    by this factor (`_amg.solve(rtol=)`) instead of `_amg.CYCLES` fixed cycles; not a
+    fixed linear map then, so only for the chord iterations, never inside GMRES. The
+    host LU is exact and ignores it.
     """
     k, d, disc = scheme.k, scene.dim, scene.disc
     R = None if rotation is None else rotation @ tangent.rotation.T
@@ -303,10 +308,10 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
     if tangent.mg is None:
         host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
         dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
-    else:  # `_amg.CYCLES` multigrid cycles on the node-major layout (n, k d)
+    else:  # multigrid cycles on the node-major layout (n, k d)
         hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
         nodes = jnp.moveaxis(bx, 0, 1).reshape(disc.n_nodes, k * d)
-        dx = jnp.moveaxis(_amg.solve(hier, tangent.mg, nodes).reshape(disc.n_nodes, k, d), 1, 0)
+        dx = jnp.moveaxis(_amg.solve(hier, tangent.mg, nodes, rtol=block_rtol).reshape(disc.n_nodes, k, d), 1, 0)
     turn = (lambda v: v) if R is None else (lambda v: v @ R.T)  # R v per node
     if b.g is None:
         return Unknowns(turn(dx), None)
