@@ -60,9 +60,9 @@ CYCLES = 4
 # solve, and `CYCLES` fixed cycles reduce the residual by rate^4: 0.03 at r4 (rate
 # 0.40) but 0.11 at r8 (0.574), where the chord iterations hit their limit (10) every
 # step and a Newton–Krylov iteration finished it. 3D L-shape hex8, eG(1), h = 0.1, 4 steps
-# (r8) / 3 steps (r6), alternating runs, same machine state: r8 29.7 -> 26.2 s/step,
-# chord 10/10/10 + 1 Newton (2 Krylov) per step -> 7/7/9 and none; r6 11.5/12.6 ->
-# 11.4/10.2 s/step, chord 7/8 -> 6/7.
+# (r8) / 3 steps (r6), alternating runs, same machine state: r8 29.7 / 25.3 -> 26.2 /
+# 20.9 s/step, chord 10/10/10 + 1 Newton (2 Krylov) per step -> 7/7/9 and none; r6
+# 11.5 / 12.6 -> 11.4 / 10.2 s/step, chord 7/8 -> 6/7. 0.005 at r8: chord 6/7/9, 23.6 s/step.
 CHORD_RTOL = 0.02
 MAX_CYCLES = 16
 # Degree of the Chebyshev–Jacobi smoother before and after the coarse correction
