@@ -1,6 +1,6 @@
 """The multigrid path of the position block (`GMRES(preconditioner="amg")`, `_solver._amg`).
 
-- The V-cycle alone, on the assembled position block of the 3D L-shape at two
+- The multigrid cycle alone, on the assembled position block of the 3D L-shape at two
   refinements: as a stationary iteration it reduces the residual by a fixed factor per
   cycle, and the factor does not grow from the coarser to the finer mesh beyond a small
   margin.
@@ -48,7 +48,7 @@ def _multigrid(scene, scheme, h=0.1):
 
 
 def _cycle_rate(scene, scheme, cycles=10):
-    """Residual reduction per V-cycle of x <- x + V(b - A x), over the last 4 cycles."""
+    """Residual reduction per cycle of x <- x + C(b - A x), over the last 4 cycles."""
     hier, mg = _multigrid(scene, scheme)
     b = jax.random.normal(jax.random.PRNGKey(0), (scene.disc.n_nodes, scheme.k * scene.dim))
     if hier.held is not None:

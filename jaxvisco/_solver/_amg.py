@@ -487,11 +487,20 @@ def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
     A, Dinv, rho = mg.A[level], mg.Dinv[level], mg.rho[level]
     x = _chebyshev(lv, A, Dinv, rho, rhs, None)
     rc = _restrict(mg.R[level], lv.r_ell_rows, rhs - _ell_apply(A, lv.ell_cols, x))
-    xc = cycle(hier, mg, rc, level + 1)
-    for _ in range(GAMMA - 1 if level + 2 < len(hier.levels) else 0):
-        xc = xc + cycle(hier, mg, rc - matvec(hier, mg, xc, level + 1), level + 1)
+    xc = _cycles(hier, mg, rc, GAMMA if level + 2 < len(hier.levels) else 1, level + 1)
     x = x + _ell_apply(mg.P[level], lv.p_ell_cols, xc)
     return _chebyshev(lv, A, Dinv, rho, rhs, x)
+
+
+def _cycles(hier: Hierarchy, mg: Multigrid, rhs, n, level=0):
+    """`n` cycles of x <- x + C(rhs - A x) at `level` from x = 0: a fixed linear map of
+    `rhs`. Unrolled: as one `fori_loop` the 3D hex8 r4 solve (four cycles) measured 8 %
+    slower (236 vs 216 ms median; no fusion across iterations, one unused residual) for
+    a compile 1-2 s shorter of 22-24 s (r3), within that noise."""
+    x = cycle(hier, mg, rhs, level)
+    for _ in range(n - 1):
+        x = x + cycle(hier, mg, rhs - matvec(hier, mg, x, level), level)
+    return x
 
 
 def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None, rtol=None):
@@ -501,10 +510,7 @@ def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None, rtol=None):
     With `rtol`, cycles go on until |rhs - A x| <= rtol |rhs| (2-norm) or `cycles`
     (default `MAX_CYCLES`) were taken: no longer a fixed linear map (not for GMRES)."""
     if rtol is None:
-        x = cycle(hier, mg, rhs)
-        for _ in range((CYCLES if cycles is None else cycles) - 1):
-            x = x + cycle(hier, mg, rhs - matvec(hier, mg, x))
-        return x
+        return _cycles(hier, mg, rhs, CYCLES if cycles is None else cycles)
     bound = rtol * jnp.linalg.norm(rhs)
 
     def body(c):

@@ -11,10 +11,10 @@ rule), so reverse mode works through JAX's transposition of the rule: one transp
 solve per step with the transposed factors, the pattern of optimistix's implicit differentiation.
 
 On the multigrid path (`GMRES(preconditioner="amg")`) the block solve is not exact (a
-few V-cycles), so a fixed number of refinement sweeps would leave an error that depends
+few W-cycles), so a fixed number of refinement sweeps would leave an error that depends
 on the mesh: there the system is solved by GMRES to `KRYLOV_RTOL` inside
 `jax.lax.custom_linear_solve`, whose transpose (reverse mode) is GMRES on the
-transposed JVP right-preconditioned by the transposed V-cycles (`jax.linear_transpose`:
+transposed JVP right-preconditioned by the transposed W-cycles (`jax.linear_transpose`:
 the multigrid solve is a fixed linear map of its right-hand side). That is lineax's
 pattern: a linear solve as a primitive that knows its own transpose.
 """

@@ -66,7 +66,7 @@ class GMRES(AbstractLinearSolver):
       so it costs more Krylov vectors).
     - `preconditioner`: how the preconditioner solves the condensed position block:
       ``"lu"`` (a sparse LU on the host, exact where the tangent was formed), ``"amg"``
-      (four V-cycles of smoothed-aggregation multigrid in JAX, `_amg`: no fill, no host
+      (four W-cycles of smoothed-aggregation multigrid in JAX, `_amg`: no fill, no host
       call, time and memory that grow about linearly with the mesh) or ``"auto"`` (the
       default: the multigrid for 3D meshes with at least `AUTO_AMG_UNKNOWNS` = 20 000
       position unknowns, where it measured faster, the LU otherwise).
