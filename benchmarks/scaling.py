@@ -22,12 +22,13 @@ from common import RESULTS, jv, lshape, machine, write_json  # noqa: I001
 import numpy as np  # noqa: E402
 
 
-def solver_for(preconditioner):
-    """The solver of a case: the defaults with the block solve forced to `preconditioner`."""
-    return jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=preconditioner))
+def solver_for(preconditioner, precision="single"):
+    """The solver of a case: the defaults with the block solve forced to `preconditioner`
+    (and the multigrid's arithmetic to `precision`)."""
+    return jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=preconditioner, multigrid_precision=precision))
 
 
-def worker(element, refinement, steps, h, preconditioner="lu"):
+def worker(element, refinement, steps, h, preconditioner="lu", precision="single"):
     import resource
 
     t0 = time.perf_counter()
@@ -37,7 +38,7 @@ def worker(element, refinement, steps, h, preconditioner="lu"):
 
     def go():
         return jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, saveat=jv.SaveAt(every=steps),
-                           solver=solver_for(preconditioner))
+                           solver=solver_for(preconditioner, precision))
 
     t0 = time.perf_counter()
     sol = go()
@@ -46,7 +47,7 @@ def worker(element, refinement, steps, h, preconditioner="lu"):
     sol = go()
     wall = time.perf_counter() - t0
     its, kits = np.asarray(sol.newton_iterations), np.asarray(sol.krylov_iterations)
-    out = dict(element=element, refinement=refinement, preconditioner=preconditioner, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
+    out = dict(element=element, refinement=refinement, preconditioner=preconditioner, multigrid_precision=precision, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
                n_gamma=int(scene.gamma0.size // 9 * 6), steps=steps, h=h, status=sol.status,
                ms_per_step=1e3 * wall / steps, compile_s=first - wall, first_call_s=first, build_s=build_s,
                newton_per_step=float(its.mean()), krylov_per_step=float(kits.mean()),
@@ -56,8 +57,8 @@ def worker(element, refinement, steps, h, preconditioner="lu"):
     print("RESULT " + json.dumps(out), flush=True)
 
 
-def run_case(element, refinement, steps, h, timeout, preconditioner="lu"):
-    cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h), preconditioner]
+def run_case(element, refinement, steps, h, timeout, preconditioner="lu", precision="single"):
+    cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h), preconditioner, precision]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -120,8 +121,8 @@ def plot(rows, path):
 
 def main(argv=None):
     if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--worker":
-        _, _, element, r, steps, h, preconditioner = sys.argv
-        worker(element, int(r), int(steps), float(h), preconditioner)
+        _, _, element, r, steps, h, preconditioner, precision = sys.argv
+        worker(element, int(r), int(steps), float(h), preconditioner, precision)
         return
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="hex8 refinement 1 and 2 only")
@@ -133,6 +134,8 @@ def main(argv=None):
     p.add_argument("--out", default="scaling")
     p.add_argument("--preconditioner", default="lu", choices=("lu", "amg"),
                    help="block solve of GMRES's preconditioner: host LU (default) or multigrid")
+    p.add_argument("--multigrid-precision", default="single", choices=("single", "double"),
+                   help="arithmetic of the multigrid's cycles (GMRES(multigrid_precision=))")
     p.add_argument("--append", action="store_true", help="keep the rows of other elements already in the file")
     p.add_argument("--memory-fraction", type=float, default=0.5,
                    help="skip a case whose peak RSS, extrapolated from the smaller ones, exceeds this fraction "
@@ -144,7 +147,8 @@ def main(argv=None):
     elements = ["hex8"] if a.quick else a.elements.split(",")
     rows = []
     data = dict(machine=machine(), settings=dict(
-        integrator="eG(1)", h=0.1, steps=steps, solver=f"NewtonKrylov(linear_solver=GMRES(preconditioner={a.preconditioner!r}))", mass="consistent",
+        integrator="eG(1)", h=0.1, steps=steps, solver=f"NewtonKrylov(linear_solver=GMRES(preconditioner={a.preconditioner!r}, "
+                                      f"multigrid_precision={a.multigrid_precision!r}))", mass="consistent",
         per_case_timeout_s=timeout, max_dofs=a.max_dofs, quick=a.quick,
         peak_memory="ru_maxrss of the subprocess that ran the case (RSS high-water mark)"), rows=rows)
     if a.append and (RESULTS / f"{a.out}.json").exists():
@@ -165,7 +169,7 @@ def main(argv=None):
                 rows.append(dict(element=el, refinement=r, dofs=dofs, status=msg))
                 print(f"{el} r{r}: {msg}", flush=True)
                 break
-            res = run_case(el, r, steps, 0.1, timeout, a.preconditioner)
+            res = run_case(el, r, steps, 0.1, timeout, a.preconditioner, a.multigrid_precision)
             res.setdefault("dofs", dofs)
             rows.append(res)
             print(json.dumps(res), flush=True)

@@ -39,20 +39,22 @@ def _scene(dim, refinement, element=None, held=False):
     return jv.Scene(mesh, material, 8.93, velocities=v0, mass="consistent", **kw)
 
 
-def _multigrid(scene, scheme, h=0.1):
+def _multigrid(scene, scheme, h=0.1, dtype=np.float64):
+    """The multigrid of the position block at the predictor of the first step; in double
+    precision unless asked (the algebra's identities below hold to float64 rounding)."""
     ctx = make_context(scene, scene.initial_state(), 0.0, h)
     U = predictor(scheme, scene, ctx, scene.v0)
     hier = _amg.hierarchy(scene.disc.cells, scheme.k, scene.disc.n_nodes, scene.dim, scene.fixed)
-    tan = jax.jit(lambda c, u: _tangent.form_tangent(scheme, scene, c, u, preconditioner="amg"))(ctx, U)
+    tan = jax.jit(lambda c, u: _tangent.form_tangent(scheme, scene, c, u, preconditioner="amg", block_dtype=dtype))(ctx, U)
     return hier, tan.mg
 
 
-def _cycle_rate(scene, scheme, cycles=10):
+def _cycle_rate(scene, scheme, cycles=10, dtype=np.float64):
     """Residual reduction per cycle of x <- x + C(b - A x), over the last 4 cycles."""
-    hier, mg = _multigrid(scene, scheme)
-    b = jax.random.normal(jax.random.PRNGKey(0), (scene.disc.n_nodes, scheme.k * scene.dim))
+    hier, mg = _multigrid(scene, scheme, dtype=dtype)
+    b = jax.random.normal(jax.random.PRNGKey(0), (scene.disc.n_nodes, scheme.k * scene.dim)).astype(dtype)
     if hier.held is not None:
-        b = b * hier.free
+        b = b * hier.free.astype(dtype)
 
     @jax.jit
     def run(b):
@@ -195,7 +197,9 @@ def test_chord_iterations_solve_the_block_to_their_tolerance(monkeypatch):
 
     def run(pc):
         jax.clear_caches()
-        solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=pc, refresh_after=30))
+        # double: float32 cycles cannot solve the block to 1e-10 (`multigrid_precision`)
+        solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=pc, refresh_after=30,
+                                                        multigrid_precision="double"))
         sol = jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, solver=solver, saveat=jv.SaveAt(every=steps))
         assert sol.status == "done", sol.status
         return sol
@@ -255,6 +259,33 @@ def test_choice_of_the_block_solve(monkeypatch):
     assert jv.Direct().block_solver(small3d) == "lu"
     with pytest.raises(ValueError, match=r"GMRES: preconditioner must be one of \('auto', 'lu', 'amg'\), got 'ilu'"):
         jv.GMRES(preconditioner="ilu")
+    with pytest.raises(ValueError, match=r"multigrid_precision must be one of \('single', 'double'\), got 'half'"):
+        jv.GMRES(multigrid_precision="half")
+
+
+@pytest.mark.timeout(600)
+def test_single_precision_cycles(monkeypatch):
+    """The multigrid's operators are stored in float32 by default (`GMRES.multigrid_
+    precision`), float64 with "double"; the float32 cycle contracts like the float64 one,
+    and its block solve to `CHORD_RTOL` reaches that tolerance on the float64 block,
+    returning float64 and the float64 solve's result to float32 rounding."""
+    monkeypatch.setattr(_amg, "MAX_COARSE", 60)
+    scene, scheme = _scene(3, 2), jv.eG(1)
+    hier, mg32 = _multigrid(scene, scheme, dtype=jv.GMRES().block_dtype())
+    _, mg64 = _multigrid(scene, scheme, dtype=jv.GMRES(multigrid_precision="double").block_dtype())
+    floats = lambda mg: {a.dtype for a in jax.tree_util.tree_leaves(mg) if jnp.issubdtype(a.dtype, jnp.floating)}  # noqa: E731
+    assert floats(mg32) == {jnp.dtype(jnp.float32)} and floats(mg64) == {jnp.dtype(jnp.float64)}
+    r32 = _cycle_rate(scene, scheme, dtype=np.float32)[0]
+    r64 = _cycle_rate(scene, scheme)[0]
+    assert 0.1 < r64 < 0.6 and abs(r32 - r64) < 0.01 * r64, (r32, r64)
+    b = jax.random.normal(jax.random.PRNGKey(2), (scene.disc.n_nodes, scene.dim))
+    rel = lambda x: float(jnp.linalg.norm(b - _amg.matvec(hier, mg64, x)) / jnp.linalg.norm(b))  # noqa: E731
+    count = jax.jit(lambda mg: _amg.solve(hier, mg, b, rtol=_amg.CHORD_RTOL))
+    x32, x64 = count(mg32), count(mg64)
+    assert x32.dtype == jnp.float64
+    assert rel(x32) <= _amg.CHORD_RTOL and rel(x64) <= _amg.CHORD_RTOL
+    # same cycles: one more or fewer would change x by ~the rate (0.4), not 1e-4
+    np.testing.assert_allclose(np.asarray(x32), np.asarray(x64), rtol=0, atol=1e-4 * np.abs(np.asarray(x64)).max())
 
 
 @pytest.mark.timeout(900)

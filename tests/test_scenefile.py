@@ -357,13 +357,14 @@ def test_scene_file_keys(tmp_path):
 
 def test_solver_keys_set_the_gmres(tmp_path):
     """[solver]'s krylov, krylov_max_steps and refresh_after (file keys of 0.1),
-    preconditioner and restart fill NewtonKrylov's GMRES."""
+    preconditioner, restart and multigrid_precision fill NewtonKrylov's GMRES."""
     text = KEYS_TEXT.replace('linear_solver = "direct"', 'linear_solver = "krylov"\nkrylov = "lineax"\n'
-                             'krylov_max_steps = 30\nrefresh_after = 2\npreconditioner = "amg"\nrestart = 10', 1)
+                             'krylov_max_steps = 30\nrefresh_after = 2\npreconditioner = "amg"\nrestart = 10\n'
+                             'multigrid_precision = "double"', 1)
     (tmp_path / "g.toml").write_text(text)
     solver = read_scene_file(tmp_path / "g.toml").solver
     assert solver.linear_solver == jv.GMRES(max_steps=30, refresh_after=2, backend="lineax", preconditioner="amg",
-                                            restart=10)
+                                            restart=10, multigrid_precision="double")
     assert solver.rtol == 1e-12
 
 
@@ -377,8 +378,10 @@ def test_solver_keys_set_the_gmres(tmp_path):
     ('linear_solver = "direct"', 'linear_solver = "krylov"\nkrylov = "cg"',
      "[solver]: krylov must be one of ('gmres', 'lineax'), got 'cg'."),
     ("chord = 0", "chord = 0\nrefresh_after = 2",
-     "[solver]: krylov, krylov_max_steps, refresh_after, preconditioner and restart set the Krylov solver, but "
-     "linear_solver = 'direct'."),
+     "[solver]: krylov, krylov_max_steps, refresh_after, preconditioner, restart and multigrid_precision set the "
+     "Krylov solver, but linear_solver = 'direct'."),
+    ('linear_solver = "direct"', 'linear_solver = "krylov"\nmultigrid_precision = "half"',
+     "[solver]: GMRES: multigrid_precision must be one of ('single', 'double'), got 'half'."),
     ('linear_solver = "direct"', 'linear_solver = "krylov"\nrestart = 0',
      "[solver]: GMRES: restart must be None or an integer >= 1, got 0."),
     ('linear_solver = "direct"', 'linear_solver = "krylov"\npreconditioner = "ilu"',

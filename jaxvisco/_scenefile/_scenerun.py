@@ -10,9 +10,9 @@ _INTEGRATORS = {"cg": "cG", "eg": "eG", "newmark": "Newmark", "midpoint": "Midpo
 # those of its GMRES (the file keys of jaxvisco 0.1, kept: krylov = "gmres" or "lineax").
 _SOLVER_KEYS = dict(rtol=float, max_iterations=int, linear_solver=str, krylov=str, krylov_max_steps=int,
                     refresh_after=int, line_search=int, reuse_limit=int, chord=int, chord_contraction=float,
-                    retain=int, preconditioner=str, restart=int)
+                    retain=int, preconditioner=str, restart=int, multigrid_precision=str)
 _GMRES_KEYS = dict(krylov="backend", krylov_max_steps="max_steps", refresh_after="refresh_after",
-                   preconditioner="preconditioner", restart="restart")
+                   preconditioner="preconditioner", restart="restart", multigrid_precision="multigrid_precision")
 
 
 class RunReader:
@@ -46,7 +46,8 @@ class RunReader:
                 gmres["backend"] = krylov_backend(gmres["backend"])
             if gmres:
                 if kw.get("linear_solver", "krylov") != "krylov":
-                    raise ValueError(f"krylov, krylov_max_steps, refresh_after, preconditioner and restart set the Krylov solver, but "
+                    raise ValueError("krylov, krylov_max_steps, refresh_after, preconditioner, restart and "
+                                     "multigrid_precision set the Krylov solver, but "
                                      f"linear_solver = {kw['linear_solver']!r}.")
                 kw["linear_solver"] = GMRES(**gmres)
             solver = NewtonKrylov(**kw)

@@ -106,7 +106,8 @@ order = 1                    # polynomial degree k of cG(k) / eG(k)
 #                            # krylov ("gmres"/"lineax"), krylov_max_steps, refresh_after,
 #                            # preconditioner ("auto"/"lu"/"amg": the block solve of
 #                            # GMRES; "amg" is multigrid, for large 3D meshes),
-#                            # restart (GMRES's basis length),
+#                            # restart (GMRES's basis length), multigrid_precision
+#                            # ("single"/"double": the multigrid's arithmetic),
 #                            # line_search, reuse_limit, chord, chord_contraction
 
 [time]

@@ -25,6 +25,11 @@ cycles whose every operation is array arithmetic in the compiled program:
 - `solve` applies `CYCLES` W-cycles (`cycle`, `GAMMA`) as a stationary iteration: a fixed linear map of its
   right-hand side, so it right-preconditions GMRES like the exact block solve did (no
   fill, no host call).
+- **Precision**: `build` forms the operators in the tangent's float64 and stores them in
+  float32 by default (`GMRES.multigrid_precision`); the cycles then run in float32 and
+  `solve` returns float64. A block solve has to reduce the residual 50-fold (chord) or
+  by four cycles' worth (GMRES), far above float32 rounding, and the cycles are bound by
+  memory traffic, which halves: see `GMRES` for the measurements.
 
 Held components are decoupled rows of the block (a scaled identity), so their modes are
 zero in T: the smoother solves them exactly.
@@ -408,9 +413,11 @@ def _spectral_radius(lv, E, Dinv, iterations=40):
     return jnp.linalg.norm(_dmul(Dinv, _ell_apply(E, lv.ell_cols, v)))
 
 
-def build(hier: Hierarchy, A0, x) -> Multigrid:
+def build(hier: Hierarchy, A0, x, dtype=np.float32) -> Multigrid:
     """The multigrid of the position block with node blocks `A0` (`fine_blocks`), for
-    the nodal positions `x` (n_nodes, d) where the tangent is formed."""
+    the nodal positions `x` (n_nodes, d) where the tangent is formed: formed in the
+    precision of `A0`, its operators stored in `dtype` (the cycles' arithmetic;
+    `GMRES.multigrid_precision`)."""
     E, Dinv, P, R, rhos = [], [], [], [], []
     Al, B = A0, None
     for lv, nxt in zip(hier.levels[:-1], hier.levels[1:]):
@@ -446,7 +453,8 @@ def build(hier: Hierarchy, A0, x) -> Multigrid:
     bl = Al.shape[-1]
     dense = jnp.zeros((last.n, bl, last.n, bl)).at[jnp.asarray(last.rows), :, jnp.asarray(last.cols), :].add(Al)
     lu, piv = jax.scipy.linalg.lu_factor(dense.reshape(last.n * bl, last.n * bl))
-    return Multigrid(tuple(E), tuple(Dinv), tuple(P), tuple(R), jnp.stack(rhos) if rhos else jnp.zeros(0), lu, piv)
+    mg = Multigrid(tuple(E), tuple(Dinv), tuple(P), tuple(R), jnp.stack(rhos) if rhos else jnp.zeros(0), lu, piv)
+    return jax.tree_util.tree_map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, mg)
 
 
 def matvec(hier: Hierarchy, mg: Multigrid, x, level=0):
@@ -508,9 +516,14 @@ def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None, rtol=None):
     linear map of `rhs`, so it preconditions GMRES like one cycle, closer to A^{-1}.
 
     With `rtol`, cycles go on until |rhs - A x| <= rtol |rhs| (2-norm) or `cycles`
-    (default `MAX_CYCLES`) were taken: no longer a fixed linear map (not for GMRES)."""
+    (default `MAX_CYCLES`) were taken: no longer a fixed linear map (not for GMRES).
+
+    The cycles run in the multigrid's precision (`build(dtype=)`); x is returned in
+    that of `rhs`."""
+    out = rhs.dtype
+    rhs = rhs.astype(mg.A[0].dtype)
     if rtol is None:
-        return _cycles(hier, mg, rhs, CYCLES if cycles is None else cycles)
+        return _cycles(hier, mg, rhs, CYCLES if cycles is None else cycles).astype(out)
     bound = rtol * jnp.linalg.norm(rhs)
 
     def body(c):
@@ -521,4 +534,4 @@ def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None, rtol=None):
     init = (jnp.zeros_like(rhs), rhs, jnp.asarray(0))
     cycles = MAX_CYCLES if cycles is None else cycles
     x, _, _ = jax.lax.while_loop(lambda c: (jnp.linalg.norm(c[1]) > bound) & (c[2] < cycles), body, init)
-    return x
+    return x.astype(out)

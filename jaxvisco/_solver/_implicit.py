@@ -97,7 +97,8 @@ def _solve_jvp(primals, tangents, *, solver, scheme):
 
     _, jvp = jax.linearize(lambda u: scaled(residual(scheme, scene, ctx, u)), U)
     block = solver.linear_solver.block_solver(scene)
-    tan = form_tangent(scheme, scene, ctx, U, retain=solver.retain, preconditioner=block)
+    tan = form_tangent(scheme, scene, ctx, U, retain=solver.retain, preconditioner=block,
+                       block_dtype=solver.linear_solver.block_dtype())
     linear = refined_solve if block == "lu" else krylov_solve
     dU = linear(jvp, lambda r: schur_solve(scheme, scene, ctx, tan, unscale(r)),
                 scaled(jax.tree_util.tree_map(jnp.negative, dR)))

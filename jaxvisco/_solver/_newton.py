@@ -203,7 +203,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
 
         def newton_step(tan):
             tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation, solver.retain,
-                                                              lin.block_solver(scene)),
+                                                              lin.block_solver(scene), lin.block_dtype()),
                                lambda: tan)
             precond = lambda r: schur_solve(scheme, scene, ctx, tan, _scaled(r, 1.0 / sx), rotation)  # noqa: E731
             rhs = jax.tree_util.tree_map(jnp.negative, _scaled(Rt, sx))

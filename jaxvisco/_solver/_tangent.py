@@ -98,7 +98,8 @@ def empty_tangent(scheme, scene, solver=None):
     if solver is not None and solver.linear_solver.block_solver(scene) == "amg":
         disc = scene.disc
         hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
-        shapes = jax.eval_shape(lambda A, x: _amg.build(hier, A, x),
+        dtype = solver.linear_solver.block_dtype()
+        shapes = jax.eval_shape(lambda A, x: _amg.build(hier, A, x, dtype),
                                 jax.ShapeDtypeStruct((hier.levels[0].nnzb, k * d, k * d), float),
                                 jax.ShapeDtypeStruct((disc.n_nodes, d), float))
         mg = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
@@ -240,10 +241,12 @@ def node_blocks(scheme, scene, ctx, dPdF, hier):
     return _amg.add_held(hier, A, held)
 
 
-def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditioner="lu") -> Tangent:
+def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditioner="lu",
+                 block_dtype=np.float32) -> Tangent:
     """Condensed tangent at U: local inverses, sensitivities, and the position block
     (`position_blocks`), factored on the host (``preconditioner="lu"``) or as an
-    aggregation multigrid in JAX (``"amg"``, `_amg`). `retain`: factorizations of the
+    aggregation multigrid in JAX (``"amg"``, `_amg`) whose operators are stored in
+    `block_dtype` (`GMRES.multigrid_precision`). `retain`: factorizations of the
     pattern the host store keeps alive (`NewtonKrylov.retain`)."""
     k, d, disc = scheme.k, scene.dim, scene.disc
     _, F, G = nodal_fields(scheme, scene, ctx, U)
@@ -261,7 +264,7 @@ def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditi
     rotation = jnp.eye(d) if rotation is None else rotation
     if preconditioner == "amg":
         hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
-        mg = _amg.build(hier, node_blocks(scheme, scene, ctx, dPdF, hier), ctx.state.x)
+        mg = _amg.build(hier, node_blocks(scheme, scene, ctx, dPdF, hier), ctx.state.x, block_dtype)
         return Tangent(jnp.asarray(-1, jnp.int64), ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG, mg)
     Ke, held = position_blocks(scheme, scene, ctx, dPdF)
     if held is not None:
