@@ -18,7 +18,10 @@ _PRECISIONS = {"single": np.float32, "double": np.float64}
 # Where "auto" switches to the multigrid: 3D meshes with at least this many position
 # unknowns. Measured (3D L-shape hex8, eG(1), h = 0.1, 5 steps, ms/step multigrid / LU):
 # 672 unknowns 21 / 21, 3969 136 / 153, 12 000 560 / 578, 26 871 1183 / 1395-2067;
-# the LU's fill grows faster beyond (benchmarks/results/scaling_amg_s18.json).
+# the LU's fill grows faster beyond (benchmarks/results/scaling_amg_s18.json). With the
+# float32 cycles, 12 000 unknowns, alternating pairs: 517 / 455 against 543 / 550 ms/step,
+# but 15-17 s of compilation against 11-13 s and 920 against 1300 MB: the faster steps
+# repay the compile only after ~75 steps, so the switch stays here.
 AUTO_AMG_UNKNOWNS = 20_000
 # GMRES's basis on the multigrid path (`GMRES.restart` None): at most this many vectors
 # before a restart. The basis holds every unknown (Γ included: 93 % of them on the 3D
