@@ -7,6 +7,8 @@ At an arbitrary (unconverged) point U of a time element:
   Jacobians formed in one pass and in several (`_tangent._POINTS_PER_PASS`).
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -66,7 +68,7 @@ def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch)
     scene = _scene(viscous, fixed)
     ctx, U, v = _point(scheme, scene)
     if viscous and not fixed:
-        # 156 points: passes of 50 points, the last one padded.
+        # 156 points: passes of 50 points, the last one overlapping the one before.
         monkeypatch.setattr(_tangent, "_POINTS_PER_PASS", 50)
 
     @jax.jit
@@ -85,6 +87,28 @@ def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch)
     assert err < 1e-9, err
     if viscous:
         assert isinstance(w, Unknowns) and w.g is not None
+
+
+@pytest.mark.timeout(120)
+def test_map_in_passes_values_and_derivatives():
+    """`map_in_passes` on rows that do not fill the last pass (23 rows in passes of 5: the
+    last pass overlaps the one before): values, forward and reverse derivatives equal the
+    one-pass map's."""
+    from jaxvisco._fem._passes import map_in_passes
+
+    def fn(xs):
+        a, b = xs
+        return {"s": jnp.sin(a) * b[:, :1], "t": jnp.einsum("nij,nj->ni", jnp.exp(0.1 * b[:, :, None] * a[:, None, :]), b)}
+
+    keys = jax.random.split(jax.random.PRNGKey(3), 4)
+    xs = (jax.random.normal(keys[0], (23, 4)), jax.random.normal(keys[1], (23, 4)))
+    dx = (jax.random.normal(keys[2], (23, 4)), jax.random.normal(keys[3], (23, 4)))
+    passes = jax.jit(lambda x: map_in_passes(fn, x, 5))
+    close = functools.partial(np.testing.assert_allclose, rtol=1e-13, atol=1e-13)
+    jax.tree_util.tree_map(close, passes(xs), fn(xs))
+    jax.tree_util.tree_map(close, jax.jvp(passes, (xs,), (dx,))[1], jax.jvp(fn, (xs,), (dx,))[1])
+    weight = lambda f: lambda x: sum(jnp.sum(jnp.cos(o)) for o in jax.tree_util.tree_leaves(f(x)))  # noqa: E731
+    jax.tree_util.tree_map(close, jax.grad(weight(passes))(xs), jax.grad(weight(fn))(xs))
 
 
 @pytest.mark.timeout(300)
@@ -108,7 +132,7 @@ def test_residual_in_passes_equals_one_pass(parts, monkeypatch):
         return jax.jvp(lambda u: residual(scheme, scene, ctx, u), (U,), (v,))
 
     one = jax.jit(evaluate)(ctx, U, v)
-    cells = 3 if parts else 5  # per pass: several passes, the last one padded (4 and 39 cells)
+    cells = 3 if parts else 5  # per pass: several passes, the last one overlapping (4 and 39 cells)
     assert scene.disc.n_cells > cells and scene.disc.n_cells % cells
     monkeypatch.setattr(scene_module, "POINTS_PER_PASS", cells * scene.disc.n_qp)
     passes = jax.jit(evaluate)(ctx, U, v)
