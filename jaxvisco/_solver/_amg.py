@@ -293,13 +293,6 @@ def _block_products(spec, X, xi, Y, yi, target, n_out):
     return out
 
 
-def fine_blocks(hier: Hierarchy, Ke, held_value=None):
-    """The node blocks (nnzb, k d, k d) of the position block from the element blocks
-    Ke (ne, k, n_en, d, k, n_en, d) and the held diagonal `held_value`."""
-    A = _segment_sum(element_node_blocks(Ke), jnp.asarray(hier.element_map), hier.levels[0].nnzb)
-    return add_held(hier, A, held_value)
-
-
 def element_node_blocks(Ke):
     """Element blocks (ne, k, n_en, d, k, n_en, d) as node-pair blocks (ne n_en n_en, k d, k d),
     in the order of `Hierarchy.element_map`."""
@@ -414,7 +407,7 @@ def _spectral_radius(lv, E, Dinv, iterations=40):
 
 
 def build(hier: Hierarchy, A0, x, dtype=np.float32) -> Multigrid:
-    """The multigrid of the position block with node blocks `A0` (`fine_blocks`), for
+    """The multigrid of the position block with node blocks `A0` (`_tangent._multigrid_blocks`), for
     the nodal positions `x` (n_nodes, d) where the tangent is formed: formed in the
     precision of `A0`, its operators stored in `dtype` (the cycles' arithmetic;
     `GMRES.multigrid_precision`)."""

@@ -208,37 +208,65 @@ def position_blocks(scheme, scene, ctx, dPdF):
     return Ke, None if scene.fixed is None else constraint_scale(scene, ctx.h)
 
 
-# Elements whose blocks the multigrid path forms at a time (`node_blocks`): the element
-# blocks and the einsum's intermediates of the 3D L-shape hex8 r4 (7488 elements) held
-# 270 MB at once.
+# Elements whose blocks the multigrid path forms at a time (`_multigrid_blocks`; at most
+# `_POINTS_PER_PASS` points): the element blocks and the einsum's intermediates of the
+# 3D L-shape hex8 r4 (7488 elements) held 270 MB at once.
 ELEMENTS_PER_PASS = 2048
 
 
-def node_blocks(scheme, scene, ctx, dPdF, hier):
-    """The node blocks (nnzb, k d, k d) of the position block on the multigrid's pattern
-    (`_amg.fine_blocks`), assembled from passes of `ELEMENTS_PER_PASS` elements (a
-    `lax.scan` that adds into its carry), so that memory grows with the mesh only through
-    the assembled blocks."""
+def _multigrid_blocks(scheme, scene, ctx, F, G, hier, point):
+    """The multigrid path's condensed tangent in one pass over the elements: per pass of
+    elements, the points' sensitivities (`point`: `_point_tangent` of one point's F, G and
+    material) and the pass's element blocks added into the node blocks (nnzb, k d, k d)
+    on the multigrid's pattern (`_amg.Hierarchy.element_map`). Returns the node blocks and
+    (Ainv, dG_dF, dP_dG) of every point (n_cells, nq, ...).
+
+    Why fused: the position block needs dP/dF only inside its element blocks, so no pass
+    keeps it for the whole mesh ((9k)^2 numbers per point: 296 MB at the 3D L-shape hex8
+    r8, eG(1)). Passes as in `_fem._passes.map_in_passes`: each reads its elements in
+    place and writes its points' sensitivities in place; the last one overlaps the one
+    before, and the overlapped elements' blocks are not added twice (their targets are
+    dropped)."""
     disc = scene.disc
-    ne = disc.n_cells
-    held = None if scene.fixed is None else constraint_scale(scene, ctx.h)
-    if ne <= ELEMENTS_PER_PASS:
-        return _amg.fine_blocks(hier, position_blocks(scheme, scene, ctx, dPdF)[0], held)
-    c = ELEMENTS_PER_PASS
-    order = _amg.chunked(np.arange(ne), c, 0)
-    # the padding elements (copies of element 0) land beyond the last block: dropped
-    target = _amg.chunked(np.asarray(hier.element_map).reshape(ne, -1), c, hier.levels[0].nnzb)
-    target = target.reshape(len(order), -1)
-    JxW, dN, mass, free = disc.JxW, disc.dN, disc.cell_mass(scene.density), _free(scene)
+    ne, nq = disc.n_cells, disc.n_qp
+    nnzb = hier.levels[0].nnzb
+    c = max(1, min(ELEMENTS_PER_PASS, _POINTS_PER_PASS // nq, ne))
+    mats = scene.point_materials()
+    dyn, static = (None, None) if mats is None else eqx.partition(mats, eqx.is_array)
+    per_cell = lambda a: a.reshape((ne, nq) + a.shape[1:])  # noqa: E731
+    cells = dict(F=F, G=G, JxW=disc.JxW, dN=disc.dN, mass=disc.cell_mass(scene.density), free=_free(scene),
+                 target=jnp.asarray(np.asarray(hier.element_map).reshape(ne, -1)),
+                 mat=None if dyn is None else jax.tree_util.tree_map(per_cell, dyn))
 
-    def add(A, chunk):
-        e, t = chunk
-        Ke = _element_blocks(scheme, ctx.h, JxW[e], dN[e], dPdF[e], mass[e], None if free is None else free[e])
-        return A.at[t].add(_amg.element_node_blocks(Ke), mode="drop"), None
+    def sensitivities(p):
+        flat = lambda a: a.reshape((-1,) + a.shape[2:])  # noqa: E731
+        mat = None if p["mat"] is None else jax.tree_util.tree_map(flat, p["mat"])
+        G = None if p["G"] is None else flat(p["G"])
+        one = lambda m, f, g: point(scene.material if m is None else eqx.combine(m, static), f, g)  # noqa: E731
+        return jax.vmap(one)(mat, flat(p["F"]), G)
 
+    per_cell_of = lambda v: v.reshape((c, nq) + v.shape[1:])  # noqa: E731
+
+    def add(carry, i):
+        A, out = carry
+        s = jnp.minimum(i * c, ne - c)
+        p = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, s, c), cells)
+        dPdF, *local = sensitivities(p)
+        Ke = _element_blocks(scheme, ctx.h, p["JxW"], p["dN"], dPdF.reshape((c, nq) + dPdF.shape[1:]), p["mass"],
+                             p["free"])
+        fresh = s + jnp.arange(c) >= i * c  # the elements this pass adds for the first time
+        target = jnp.where(fresh[:, None], p["target"], nnzb).reshape(-1)
+        A = A.at[target].add(_amg.element_node_blocks(Ke), mode="drop")
+        put = lambda o, v: jax.lax.dynamic_update_slice_in_dim(o, per_cell_of(v), s, 0)  # noqa: E731
+        return (A, jax.tree_util.tree_map(put, out, tuple(local))), None
+
+    first = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct((c,) + a.shape[1:], a.dtype), cells)
+    shapes = jax.eval_shape(sensitivities, first)[1:]
+    out = jax.tree_util.tree_map(lambda o: jnp.zeros((ne, nq) + o.shape[1:], o.dtype), tuple(shapes))
     b = scheme.k * scene.dim
-    A, _ = jax.lax.scan(add, jnp.zeros((hier.levels[0].nnzb, b, b)), (jnp.asarray(order), jnp.asarray(target)))
-    return _amg.add_held(hier, A, held)
+    (A, out), _ = jax.lax.scan(add, (jnp.zeros((nnzb, b, b)), out), jnp.arange(-(-ne // c)))
+    held = None if scene.fixed is None else constraint_scale(scene, ctx.h)
+    return _amg.add_held(hier, A, held), out
 
 
 def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditioner="lu",
@@ -250,6 +278,13 @@ def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditi
     pattern the host store keeps alive (`NewtonKrylov.retain`)."""
     k, d, disc = scheme.k, scene.dim, scene.disc
     _, F, G = nodal_fields(scheme, scene, ctx, U)
+    rotation = jnp.eye(d) if rotation is None else rotation
+    if preconditioner == "amg":
+        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        point = lambda mat, f, g: _point_tangent(scheme, mat, ctx.h, f, g, d=d)  # noqa: E731
+        A0, (Ainv, dGdF, dPdG) = _multigrid_blocks(scheme, scene, ctx, F, G, hier, point)
+        mg = _amg.build(hier, A0, ctx.state.x, block_dtype)
+        return Tangent(jnp.asarray(-1, jnp.int64), ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG, mg)
     ne, nq = disc.n_cells, disc.n_qp
     flat = lambda a: None if a is None else a.reshape((ne * nq,) + a.shape[2:])  # noqa: E731
     mats = scene.point_materials()
@@ -261,11 +296,6 @@ def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditi
         out = _map_points(lambda a: _point_tangent(scheme, eqx.combine(a[0], static), ctx.h, a[1], a[2], d=d),
                           (dyn, flat(F), flat(G)))
     dPdF, Ainv, dGdF, dPdG = (None if o is None else o.reshape((ne, nq) + o.shape[1:]) for o in out)
-    rotation = jnp.eye(d) if rotation is None else rotation
-    if preconditioner == "amg":
-        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
-        mg = _amg.build(hier, node_blocks(scheme, scene, ctx, dPdF, hier), ctx.state.x, block_dtype)
-        return Tangent(jnp.asarray(-1, jnp.int64), ctx.h, jnp.asarray(False), rotation, Ainv, dGdF, dPdG, mg)
     Ke, held = position_blocks(scheme, scene, ctx, dPdF)
     if held is not None:
         n_held = len(_held_dofs(scene.fixed, k, disc.n_nodes, d))
