@@ -48,8 +48,9 @@ def main(argv=None):
     p.add_argument("--refinements", default="4")
     p.add_argument("--element", default="hex8")
     p.add_argument("--preconditioner", default="amg", choices=("lu", "amg"))
+    p.add_argument("--restart", type=int, default=None, help="GMRES(restart=) (default: the solver's)")
     a = p.parse_args(argv)
-    solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=a.preconditioner))
+    solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=a.preconditioner, restart=a.restart))
     for r in map(int, a.refinements.split(",")):
         scene = lshape(3, r, element=a.element, mass="consistent")
         args, kwargs = loop_arguments(scene, solver)

@@ -27,8 +27,11 @@ AUTO_AMG_UNKNOWNS = 20_000
 # before a restart. The basis holds every unknown (Γ included: 93 % of them on the 3D
 # L-shape); with 61 rows it was 188 MB of the 782 MB of XLA buffers of the hex8 r4 run
 # and the largest array at the peak (4 cycles keep Krylov vectors per Newton iteration
-# at 2-3 there, so the restart rarely triggers).
-AMG_RESTART = 20
+# at 2-3 there, so the restart rarely triggers). With 20 (21 rows) the basis set the peak
+# of XLA's buffers at hex8 r8 (196 875 unknowns, 3.07 million with Γ): temporary buffers
+# of the compiled loop 1963 MB, with 10 1729 MB (`benchmarks/loop_memory.py`); the runs
+# there take 2-5 Krylov vectors per Newton iteration.
+AMG_RESTART = 10
 
 
 class AbstractLinearSolver(eqx.Module):
@@ -80,7 +83,7 @@ class GMRES(AbstractLinearSolver):
       default: the multigrid for 3D meshes with at least `AUTO_AMG_UNKNOWNS` = 20 000
       position unknowns, where it measured faster, the LU otherwise).
     - `restart`: Krylov vectors kept before GMRES restarts (None, the default: no
-      restart on the LU path, `AMG_RESTART` = 20 on the multigrid path, where the basis
+      restart on the LU path, `AMG_RESTART` = 10 on the multigrid path, where the basis
       over every unknown is the largest array of a step). `max_steps` bounds the vectors
       of all cycles together.
     - `multigrid_precision`: ``"single"`` (the default) or ``"double"``: the arithmetic of
