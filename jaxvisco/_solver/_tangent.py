@@ -252,8 +252,7 @@ def _multigrid_blocks(scheme, scene, ctx, F, G, hier, point):
         s = jnp.minimum(i * c, ne - c)
         p = jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, s, c), cells)
         dPdF, *local = sensitivities(p)
-        Ke = _element_blocks(scheme, ctx.h, p["JxW"], p["dN"], dPdF.reshape((c, nq) + dPdF.shape[1:]), p["mass"],
-                             p["free"])
+        Ke = _element_blocks(scheme, ctx.h, p["JxW"], p["dN"], per_cell_of(dPdF), p["mass"], p["free"])
         fresh = s + jnp.arange(c) >= i * c  # the elements this pass adds for the first time
         target = jnp.where(fresh[:, None], p["target"], nnzb).reshape(-1)
         A = A.at[target].add(_amg.element_node_blocks(Ke), mode="drop")
