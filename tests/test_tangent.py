@@ -68,7 +68,7 @@ def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch)
     scene = _scene(viscous, fixed)
     ctx, U, v = _point(scheme, scene)
     if viscous and not fixed:
-        # 156 points: passes of 50 points, the last one overlapping the one before.
+        # 156 points: passes of 50 points, the last one padded.
         monkeypatch.setattr(_tangent, "_POINTS_PER_PASS", 50)
 
     @jax.jit
@@ -91,9 +91,8 @@ def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch)
 
 @pytest.mark.timeout(120)
 def test_map_in_passes_values_and_derivatives():
-    """`map_in_passes` on rows that do not fill the last pass (23 rows in passes of 5: the
-    last pass overlaps the one before): values, forward and reverse derivatives equal the
-    one-pass map's."""
+    """`map_in_passes` on rows that do not fill the last pass (23 rows in passes of 5):
+    values, forward and reverse derivatives equal the one-pass map's."""
     from jaxvisco._fem._passes import map_in_passes
 
     def fn(xs):
@@ -132,7 +131,7 @@ def test_residual_in_passes_equals_one_pass(parts, monkeypatch):
         return jax.jvp(lambda u: residual(scheme, scene, ctx, u), (U,), (v,))
 
     one = jax.jit(evaluate)(ctx, U, v)
-    cells = 3 if parts else 5  # per pass: several passes, the last one overlapping (4 and 39 cells)
+    cells = 3 if parts else 5  # per pass: several passes, the last one padded (4 and 39 cells)
     assert scene.disc.n_cells > cells and scene.disc.n_cells % cells
     monkeypatch.setattr(scene_module, "POINTS_PER_PASS", cells * scene.disc.n_qp)
     passes = jax.jit(evaluate)(ctx, U, v)

@@ -18,28 +18,16 @@ POINTS_PER_PASS = 4096
 
 def map_in_passes(fn, xs, size):
     """`fn` (batched over the leading axis) applied to the pytree `xs` in passes of
-    `size` rows; the outputs have the rows of `xs`.
-
-    Each pass reads its rows of `xs` in place and writes its rows of the output in place
-    (a `lax.scan` whose carry is the output), and the last pass starts `size` rows
-    before the end, so it overlaps the one before and writes the same values again:
-    no padded copy of the inputs and no stacked copy of the outputs. (The padded
-    version, `lax.map` over a padded copy and a slice of the stacked result, held the
-    outputs twice: the time loop of the 3D L-shape hex8 r6 on the multigrid path, eG(1),
-    needed 1123 MB of XLA temporary buffers with it and 914 MB now, by XLA's memory
-    analysis of the compiled loop.) Derivatives are exact: the overlapped rows' second
-    write replaces the first, so their cotangent reaches the last pass only."""
+    `size` rows (`lax.map`), the last pass padded with copies of the first row; the
+    outputs concatenated back to the rows of `xs`."""
     n = jax.tree_util.tree_leaves(xs)[0].shape[0]
-    if n <= size:
-        return fn(xs)
-    starts = jnp.minimum(jnp.arange(-(-n // size)) * size, n - size)
-    take = lambda s: jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, s, size), xs)  # noqa: E731
-    one_pass = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct((size,) + a.shape[1:], a.dtype), xs)
-    shapes = jax.eval_shape(fn, one_pass)
-    out = jax.tree_util.tree_map(lambda o: jnp.zeros((n,) + o.shape[1:], o.dtype), shapes)
+    m = -(-n // size)
+    pad = m * size - n
 
-    def one(out, s):
-        put = lambda o, v: jax.lax.dynamic_update_slice_in_dim(o, v, s, 0)  # noqa: E731
-        return jax.tree_util.tree_map(put, out, fn(take(s))), None
+    def split(a):
+        if pad:
+            a = jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])])
+        return a.reshape((m, size) + a.shape[1:])
 
-    return jax.lax.scan(one, out, starts)[0]
+    out = jax.lax.map(fn, jax.tree_util.tree_map(split, xs))
+    return jax.tree_util.tree_map(lambda o: o.reshape((m * size,) + o.shape[2:])[:n], out)
