@@ -13,6 +13,7 @@ To see which arrays make them up: XLA_FLAGS="--xla_dump_to=DIR
 """
 
 import argparse
+import resource
 import time
 
 from common import jv, lshape  # noqa: I001
@@ -63,8 +64,9 @@ def main(argv=None):
         mb = lambda b: b / 2**20  # noqa: E731
         print(f"{a.element} r{r} {a.preconditioner}: {n} unknowns, temporary {mb(m.temp_size_in_bytes):.1f} MB "
               f"({m.temp_size_in_bytes / n / 1e3:.2f} KB per unknown), arguments {mb(m.argument_size_in_bytes):.1f} MB, "
-              f"outputs {mb(m.output_size_in_bytes):.1f} MB; lowered in {t1 - t0:.1f} s, compiled in {t2 - t1:.1f} s",
-              flush=True)
+              f"outputs {mb(m.output_size_in_bytes):.1f} MB, generated code {mb(m.generated_code_size_in_bytes):.1f} MB; "
+              f"lowered in {t1 - t0:.1f} s, compiled in {t2 - t1:.1f} s; process peak RSS so far "
+              f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB", flush=True)
 
 
 if __name__ == "__main__":

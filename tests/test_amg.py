@@ -331,3 +331,50 @@ def test_restarted_gmres_on_the_multigrid_path(monkeypatch):
     np.testing.assert_allclose(np.asarray(ends["amg2"].x[-1]), np.asarray(ends["lu"].x[-1]), rtol=0, atol=1e-8 * scale)
     H, D, W = (np.asarray(a) for a in (ends["amg2"].energy, ends["amg2"].dissipated, ends["amg2"].external_work))
     assert abs((H[-1] + D[-1] - W[-1]) - H[0]) < 1e-8 * abs(H[0])
+
+
+def _int_constant_elements(text):
+    """Elements of the integer array constants in a lowered program's text."""
+    import re
+
+    total = 0
+    for dims in re.findall(r"stablehlo\.constant dense<[^\n]*?> : tensor<((?:\d+x)+)i(?:32|64)>", text):
+        total += int(np.prod([int(d) for d in dims.rstrip("x").split("x")]))
+    return total
+
+
+@pytest.mark.timeout(600)
+def test_time_loop_takes_the_hierarchy_as_arguments(monkeypatch):
+    """`simulate` passes the hierarchy's index arrays into its compiled loop as arguments
+    (`_tangent.multigrid_arguments`): the lowered loop embeds none of them as constants
+    (where reading them as constants embeds several times their size), and runs to the
+    same steps as the loop that reads them as constants."""
+    from jaxvisco._integrate import _simulate
+
+    monkeypatch.setattr(_amg, "MAX_COARSE", 40)
+    scene = _scene(3, 1, "hex8", held=True)
+    solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner="amg"))
+    captured = {}
+    run = _simulate._run
+
+    def capture(*args, **kwargs):
+        captured.update(args=args, kwargs=kwargs)
+        return run(*args, **kwargs)
+
+    monkeypatch.setattr(_simulate, "_run", capture)
+    sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, solver=solver)
+    args, kwargs = captured["args"], captured["kwargs"]
+    multigrid = args[-1]
+    hier = _amg.of_scene(1, scene)
+    assert set(multigrid) == set(hier.arguments())
+    size = sum(int(np.size(a)) for a in multigrid.values())
+    with_arguments = _int_constant_elements(run.lower(*args, **kwargs).as_text())
+    as_constants = _int_constant_elements(run.lower(*args[:-1], None, **kwargs).as_text())
+    assert as_constants > 0.5 * size, (as_constants, size)  # (not every index array is read by the loop)
+    assert with_arguments < 0.1 * size, (with_arguments, size)
+    ref = run(*args[:-1], None, **kwargs)
+    n = len(np.asarray(sol.newton_iterations))
+    for name in ("newton_iterations", "chord_iterations", "krylov_iterations"):
+        np.testing.assert_array_equal(np.asarray(getattr(ref, name))[:n], np.asarray(getattr(sol, name)))
+    x, x_ref = np.asarray(sol.x), np.asarray(ref.x)[: len(sol.x)]
+    np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-12 * np.abs(x_ref).max())

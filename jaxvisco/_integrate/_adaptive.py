@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from .._config import jit
 from .._solver._newton import solve_step
-from .._solver._tangent import empty_tangent
+from .._solver._tangent import empty_tangent, multigrid_scope
 from .._time_element._estimate import dense_state, scaled_error
 from .._time_element._step import make_context, predictor, step_outcome
 from ._differentiable import (
@@ -33,15 +33,16 @@ from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
 
 @jit(export=True)
 def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save_every, save_gamma, ts_out,
-                 eq_tol, v0, use_v0, segment):
+                 eq_tol, v0, use_v0, segment, multigrid=None):
     """Integrate from `t0` to `t1` with error-controlled steps; at most `capacity`
     accepted steps. Frames: every `save_every`-th accepted step (and the last), or, if
     `ts_out` is an array, at those times (dense output). Returns the `Solution` and the
     next step size the controller proposes. `segment`: sub-steps per checkpointed
-    segment of its derivative (`_differentiable`)."""
+    segment of its derivative (`_differentiable`); `multigrid`: the hierarchy's index arrays
+    (`multigrid_arguments`), arguments rather than constants of the program."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, ctrl=ctrl, t0=t0, t1=t1, h0=h0, capacity=capacity,
                  save_every=save_every, save_gamma=save_gamma, ts_out=ts_out, eq_tol=eq_tol, use_v0=use_v0,
-                 segment=segment)
+                 segment=segment, multigrid=multigrid)
 
 
 @eqx.filter_custom_jvp
@@ -50,11 +51,13 @@ def _loop(scene, state0, v0, **kw):
     predictor's initial velocity along its accepted steps (their sizes are constants of
     the derivative), through the replay of `_differentiable`."""
     kw.pop("segment")
-    return _probe(scene, state0, v0, **kw)[:2]
+    with multigrid_scope(kw["scheme"], scene, kw.pop("multigrid")):
+        return _probe(scene, state0, v0, **kw)[:2]
 
 
 @_loop.def_jvp
-def _loop_jvp(primals, tangents, *, segment, **kw):
+def _loop_jvp(primals, tangents, *, segment, multigrid, **kw):
+    del multigrid  # the derivative reads the hierarchy as constants (`_simulate._loop_jvp`)
     sol, h, rec = _probe(*primals, **kw)
     sol, t_sol = differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"],
                                use_v0=kw["use_v0"], save_gamma=kw["save_gamma"], segment=segment)

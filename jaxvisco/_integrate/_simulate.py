@@ -18,7 +18,7 @@ import numpy as np
 from .._config import _top_level, jit
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
-from .._solver._tangent import empty_tangent
+from .._solver._tangent import empty_tangent, multigrid_arguments, multigrid_scope
 from .._time_element._step import make_context, predictor, step_outcome
 from .._time_element._time_element import AbstractTimeElement
 from .._validation import check_finite
@@ -122,7 +122,8 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
         hs, te = _padded(hs, te, capacity(n_active))
     segment = _segment(record_size(len(hs)), saveat, adjoint)
     sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
-               jnp.asarray(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment)
+               jnp.asarray(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment,
+               multigrid_arguments(integrator, scene, solver))
     return _finish(sol, integrator, ctrl.max_halvings, throw)
 
 
@@ -196,7 +197,7 @@ def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solv
                           jnp.asarray(h0), cap, saveat.every, saveat.gamma,
                           None if saveat.ts is None else jnp.asarray(saveat.ts),
                           None if event is None else jnp.asarray(float(event.tol)), v0, use_v0,
-                          _segment(cap, saveat, adjoint))
+                          _segment(cap, saveat, adjoint), multigrid_arguments(integrator, scene, solver))
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()
@@ -245,12 +246,13 @@ def _finish(sol, integrator, max_halvings, throw):
 
 @jit(export=True)
 def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0,
-         segment):
+         segment, multigrid=None):
     """The time loop (`_loop`), compiled. `segment`: sub-steps per checkpointed segment
-    of its derivative (`_differentiable`)."""
+    of its derivative (`_differentiable`); `multigrid`: the hierarchy's index arrays
+    (`multigrid_arguments`), arguments rather than constants of the program."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, t0=t0, hs=hs, te=te, n_steps=n_steps,
                  save_every=save_every, save_gamma=save_gamma, eq_tol=eq_tol, max_halvings=max_halvings,
-                 use_v0=use_v0, segment=segment)
+                 use_v0=use_v0, segment=segment, multigrid=multigrid)
 
 
 @eqx.filter_custom_jvp
@@ -258,11 +260,16 @@ def _loop(scene, state0, v0, **kw):
     """The loop's `Solution`; differentiable in the scene, the initial state and the
     predictor's initial velocity through the replay of its sub-steps (`_loop_jvp`)."""
     kw.pop("segment")
-    return _probe(scene, state0, v0, **kw)[0]
+    with multigrid_scope(kw["scheme"], scene, kw.pop("multigrid")):
+        return _probe(scene, state0, v0, **kw)[0]
 
 
 @_loop.def_jvp
-def _loop_jvp(primals, tangents, *, segment, **kw):
+def _loop_jvp(primals, tangents, *, segment, multigrid, **kw):
+    # The derivative (the replay of `_differentiable`) reads the multigrid's index arrays
+    # as constants: JAX runs the rules of custom derivatives inside it lazily, possibly
+    # after this rule returned, where arguments passed in by a context would be stale.
+    del multigrid
     sol, rec = _probe(*primals, **kw)
     return differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"], use_v0=kw["use_v0"],
                          save_gamma=kw["save_gamma"], segment=segment)

@@ -40,6 +40,8 @@ whenever the tangent is, and no JAX library provides aggregation multigrid. pyam
 the graph aggregation here.
 """
 
+import contextlib
+import contextvars
 import functools
 
 import equinox as eqx
@@ -88,7 +90,23 @@ IMPROVE = 4
 PRODUCTS_PER_CHUNK = 1 << 16
 
 
-class Level:
+# The hierarchy's index arrays as arguments of the program being traced (`arguments`):
+# {(id(owner), name): traced array}, or None where they are read as constants.
+_ARGUMENTS = contextvars.ContextVar("jaxvisco_multigrid_arguments", default=None)
+
+
+class _Indexed:
+    """Host index arrays that traced code reads through `ix`: the program's argument where
+    `arguments` passes them in, else the host array (a constant of the program)."""
+
+    def ix(self, name):
+        subs = _ARGUMENTS.get()
+        if subs is not None and (id(self), name) in subs:
+            return subs[(id(self), name)]
+        return jnp.asarray(self.index_arrays()[name])
+
+
+class Level(_Indexed):
     """Host description of one level: its block pattern and its map to the next level."""
 
     def __init__(self, rows, cols, n):
@@ -100,6 +118,21 @@ class Level:
     @property
     def nnzb(self):
         return len(self.rows)
+
+    def index_arrays(self):
+        """The level's index arrays that traced code reads (`ix`), the block products'
+        lists chunked as `_block_products` scans them (by `PRODUCTS_PER_CHUNK`)."""
+        if getattr(self, "_index", (None,))[0] != PRODUCTS_PER_CHUNK:
+            names = ("rows", "cols", "diag", "ell", "ell_cols", "agg", "slot", "members", "p_rows", "p_diag",
+                     "p_ell", "p_ell_cols", "r_ell", "r_ell_rows")
+            out = {n: getattr(self, n) for n in names if getattr(self, n, None) is not None}
+            if self.agg is not None:
+                out |= _product_lists("z", np.arange(self.nnzb, dtype=np.int32), self.cols, self.z_target,
+                                      len(self.p_rows))
+                out |= _product_lists("ap", self.ap_a, self.ap_p, self.ap_t, self.ap_n)
+                out |= _product_lists("c", self.c_p, self.c_s, self.c_t, self.next_nnzb)
+            self._index = (PRODUCTS_PER_CHUNK, out)
+        return self._index[1]
 
 
 def _find(rows, cols, r, c, n):
@@ -195,10 +228,11 @@ def _coarsen(level):
     q, p, r, c = _products(zc, zr, _ptr(apr, level.n), apc)
     cr, cc, t = _pattern(r, c, n_c)
     level.c_p, level.c_s, level.c_t = i32(q), i32(p), i32(t)
+    level.next_nnzb = len(cr)
     return Level(cr, cc, n_c)
 
 
-class Hierarchy:
+class Hierarchy(_Indexed):
     """The host part of the multigrid for one position-block pattern (`hierarchy`)."""
 
     def __init__(self, cells, k, n_nodes, dim, held, max_coarse=None):
@@ -230,6 +264,44 @@ class Hierarchy:
     def describe(self):
         return [dict(nodes=lv.n, blocks=lv.nnzb) for lv in self.levels]
 
+    def index_arrays(self):
+        """The hierarchy's own index arrays that traced code reads (`ix`)."""
+        out = dict(element_map=self.element_map)
+        if self.held is not None:
+            out |= dict(held_block=self.held_block, held_pos=self.held_pos, free=self.free)
+        return out
+
+    def arguments(self):
+        """Every index array of the hierarchy and its levels on the device, as the
+        program argument that `arguments` passes in: {name: array}."""
+        out = {k: jnp.asarray(v) for k, v in self.index_arrays().items()}
+        for i, lv in enumerate(self.levels):
+            out |= {f"L{i}.{k}": jnp.asarray(v) for k, v in lv.index_arrays().items()}
+        return out
+
+
+@contextlib.contextmanager
+def arguments(hier, args):
+    """Within this context, the traced code of `hier` reads its index arrays from `args`
+    (`Hierarchy.arguments`, passed in as arguments of the program being traced) instead
+    of embedding them as constants. `args` None: no change.
+
+    Why: embedded, they are copied into every stage of the compilation (the program, XLA's
+    module, the executable) and each use of an array is a constant of its own; the
+    compiled time loop of the 3D L-shape hex8 r8 (eG(1), the hierarchy's index arrays
+    185 MB) kept 1.2 GB more resident memory than the same loop with them as arguments."""
+    if args is None:
+        yield
+        return
+    subs = {(id(hier), k): args[k] for k in hier.index_arrays()}
+    for i, lv in enumerate(hier.levels):
+        subs |= {(id(lv), k): args[f"L{i}.{k}"] for k in lv.index_arrays()}
+    token = _ARGUMENTS.set(subs)
+    try:
+        yield
+    finally:
+        _ARGUMENTS.reset(token)
+
 
 @functools.lru_cache(maxsize=16)
 def _hierarchy(cells, k, n_nodes, dim, fixed, max_coarse):
@@ -241,6 +313,12 @@ def hierarchy(cells, k, n_nodes, dim, fixed=None) -> Hierarchy:
     `StaticArray`s of the scene's discretization; coarsened until the coarsest matrix
     has at most `MAX_COARSE` unknowns (read at each call, so a test can lower it)."""
     return _hierarchy(cells, k, n_nodes, dim, fixed, MAX_COARSE)
+
+
+def of_scene(k, scene) -> Hierarchy:
+    """The hierarchy of the position block of `scene` for time elements of `k` nodes."""
+    disc = scene.disc
+    return hierarchy(disc.cells, k, disc.n_nodes, scene.dim, scene.fixed)
 
 
 class Multigrid(eqx.Module):
@@ -273,17 +351,27 @@ def chunked(a, size, fill):
     return np.concatenate([a, pad]).reshape((m, size) + a.shape[1:])
 
 
-def _block_products(spec, X, xi, Y, yi, target, n_out):
-    """sum over t of einsum(spec, X[xi[t]], Y[yi[t]]) into output block target[t] (n_out
-    blocks), in chunks of `PRODUCTS_PER_CHUNK` (a `lax.scan` that adds into its carry),
-    so that only one chunk's gathered blocks are alive at a time: the product lists grow
-    with the mesh (A P of the 3D L-shape hex8 r4: 963 739 products, three 3 x 6 or 3 x 3
-    arrays of them at once, 330 MB)."""
+def _product_lists(name, xi, yi, target, n_out):
+    """The index lists of one `_block_products` ({name}.x, .y, .target), chunked
+    (m, `PRODUCTS_PER_CHUNK`) where they are longer than a chunk."""
     c = PRODUCTS_PER_CHUNK
-    if len(xi) <= c:
-        return _segment_sum(jnp.einsum(spec, X[jnp.asarray(xi)], Y[jnp.asarray(yi)]), jnp.asarray(target), n_out)
+    if len(xi) > c:
+        xi, yi, target = chunked(xi, c, 0), chunked(yi, c, 0), chunked(target, c, n_out)
+    return {f"{name}.x": np.asarray(xi, np.int32), f"{name}.y": np.asarray(yi, np.int32),
+            f"{name}.target": np.asarray(target, np.int32)}
+
+
+def _block_products(spec, X, Y, lv, name, n_out):
+    """sum over t of einsum(spec, X[xi[t]], Y[yi[t]]) into output block target[t] (n_out
+    blocks), the lists (xi, yi, target) the level's `name` (`_product_lists`); in chunks
+    of `PRODUCTS_PER_CHUNK` (a `lax.scan` that adds into its carry), so that only one
+    chunk's gathered blocks are alive at a time: the product lists grow with the mesh (A P
+    of the 3D L-shape hex8 r4: 963 739 products, three 3 x 6 or 3 x 3 arrays of them at
+    once, 330 MB)."""
+    idx = tuple(lv.ix(f"{name}.{part}") for part in ("x", "y", "target"))
+    if idx[0].ndim == 1:
+        return _segment_sum(jnp.einsum(spec, X[idx[0]], Y[idx[1]]), idx[2], n_out)
     out_shape = jax.eval_shape(lambda a, b: jnp.einsum(spec, a, b), X[:1], Y[:1]).shape[1:]
-    idx = (jnp.asarray(chunked(xi, c, 0)), jnp.asarray(chunked(yi, c, 0)), jnp.asarray(chunked(target, c, n_out)))
 
     def add(out, chunk):
         a, b, t = chunk
@@ -303,14 +391,15 @@ def element_node_blocks(Ke):
 def add_held(hier: Hierarchy, A, held_value):
     """The node blocks A with the held components' diagonal value added."""
     if hier.held is not None:
-        A = A.at[hier.held_block, hier.held_pos, hier.held_pos].add(held_value)
+        pos = hier.ix("held_pos")
+        A = A.at[hier.ix("held_block"), pos, pos].add(held_value)
     return A
 
 
 def _rigid_modes(hier, x, level):
     """Rigid-body modes of each node about its aggregate's centroid (n, k d, k r)."""
     n, d, k = level.n, hier.dim, hier.k
-    agg = jnp.asarray(level.agg)
+    agg = level.ix("agg")
     counts = _segment_sum(jnp.ones(n), agg, len(level.members))
     centre = _segment_sum(x, agg, len(level.members)) / counts[:, None]
     y = x - centre[agg]
@@ -324,7 +413,7 @@ def _rigid_modes(hier, x, level):
     Br = jnp.concatenate([eye, rot], axis=2)  # (n, d, r)
     B = jnp.einsum("JI,ndr->nJdIr", jnp.eye(k), Br).reshape(n, k * d, k * hier.r)
     if hier.held is not None:
-        B = B * hier.free[:, :, None]
+        B = B * hier.ix("free")[:, :, None]
     return B
 
 
@@ -399,11 +488,11 @@ def _spectral_radius(lv, E, Dinv, iterations=40):
     v = jnp.cos(jnp.arange(lv.n * E.shape[-1], dtype=float) * 0.618).reshape(lv.n, -1) + 1.0
 
     def step(_, v):
-        w = _dmul(Dinv, _ell_apply(E, lv.ell_cols, v))
+        w = _dmul(Dinv, _ell_apply(E, lv.ix("ell_cols"), v))
         return w / jnp.linalg.norm(w)
 
     v = jax.lax.fori_loop(0, iterations, step, v / jnp.linalg.norm(v))
-    return jnp.linalg.norm(_dmul(Dinv, _ell_apply(E, lv.ell_cols, v)))
+    return jnp.linalg.norm(_dmul(Dinv, _ell_apply(E, lv.ix("ell_cols"), v)))
 
 
 def build(hier: Hierarchy, A0, x, dtype=np.float32) -> Multigrid:
@@ -414,8 +503,8 @@ def build(hier: Hierarchy, A0, x, dtype=np.float32) -> Multigrid:
     E, Dinv, P, R, rhos = [], [], [], [], []
     Al, B = A0, None
     for lv, nxt in zip(hier.levels[:-1], hier.levels[1:]):
-        El = _to_ell(Al, lv.ell)
-        Dl = jax.vmap(small_inv)(Al[lv.diag])  # (n, b, b)
+        El = _to_ell(Al, lv.ix("ell"))
+        Dl = jax.vmap(small_inv)(Al[lv.ix("diag")])  # (n, b, b)
         rho = _spectral_radius(lv, El, Dl)
         E.append(El)
         Dinv.append(Dl)
@@ -424,28 +513,28 @@ def build(hier: Hierarchy, A0, x, dtype=np.float32) -> Multigrid:
             B = _rigid_modes(hier, x, lv)
         for _ in range(IMPROVE):  # relax A B = 0 from the rigid modes (pyamg's improve_candidates)
             # one mode at a time: all at once gathers (m, n, w, b) (3D hex8 r8: 243 MB)
-            AB = jnp.moveaxis(jax.lax.map(lambda c: _ell_apply(El, lv.ell_cols, c), jnp.moveaxis(B, 2, 0)), 0, 2)
+            AB = jnp.moveaxis(jax.lax.map(lambda c: _ell_apply(El, lv.ix("ell_cols"), c), jnp.moveaxis(B, 2, 0)), 0, 2)
             B = B - (1.0 / rho) * jnp.einsum("nij,njm->nim", Dl, AB)
         b, m = B.shape[1:]
-        pad = jnp.concatenate([B, jnp.zeros((1, b, m))])[jnp.asarray(lv.members)]  # (n_c, s, b, m)
+        pad = jnp.concatenate([B, jnp.zeros((1, b, m))])[lv.ix("members")]  # (n_c, s, b, m)
         n_c, s = lv.members.shape
         Q, Rq, dead = _orthonormalize(pad.reshape(n_c, s * b, m))
-        T = Q.reshape(n_c, s, b, m)[jnp.asarray(lv.agg), jnp.asarray(lv.slot)]  # (n, b, m)
+        T = Q.reshape(n_c, s, b, m)[lv.ix("agg"), lv.ix("slot")]  # (n, b, m)
         # smoothed prolongator P = (I - w D^-1 A) T, w = 4 / (3 rho(D^-1 A))
-        Z = _block_products("nbc,ncm->nbm", Al, np.arange(lv.nnzb), T, lv.cols, lv.z_target, len(lv.p_rows))
-        Pl = -(4.0 / (3.0 * rho)) * jnp.einsum("nbc,ncm->nbm", Dl[jnp.asarray(lv.p_rows)], Z)
-        Pl = Pl.at[jnp.asarray(lv.p_diag)].add(T)
-        P.append(_to_ell(Pl, lv.p_ell))
-        R.append(_to_ell(Pl, lv.r_ell))
-        AP = _block_products("nbc,ncm->nbm", Al, lv.ap_a, Pl, lv.ap_p, lv.ap_t, lv.ap_n)
-        Ac = _block_products("nbm,nbp->nmp", Pl, lv.c_p, AP, lv.c_s, lv.c_t, nxt.nnzb)
+        Z = _block_products("nbc,ncm->nbm", Al, T, lv, "z", len(lv.p_rows))
+        Pl = -(4.0 / (3.0 * rho)) * jnp.einsum("nbc,ncm->nbm", Dl[lv.ix("p_rows")], Z)
+        Pl = Pl.at[lv.ix("p_diag")].add(T)
+        P.append(_to_ell(Pl, lv.ix("p_ell")))
+        R.append(_to_ell(Pl, lv.ix("r_ell")))
+        AP = _block_products("nbc,ncm->nbm", Al, Pl, lv, "ap", lv.ap_n)
+        Ac = _block_products("nbm,nbp->nmp", Pl, AP, lv, "c", nxt.nnzb)
         # a mode an aggregate cannot carry (two nodes cannot turn about their axis)
-        Al = Ac.at[jnp.asarray(nxt.diag)].add(jax.vmap(jnp.diag)(dead.astype(Ac.dtype)))
+        Al = Ac.at[nxt.ix("diag")].add(jax.vmap(jnp.diag)(dead.astype(Ac.dtype)))
         B = Rq  # the coarse nodes' modes: X = Q R, so mode j is column j of R (m, m)
     last = hier.levels[-1]
-    E.append(_to_ell(Al, last.ell))
+    E.append(_to_ell(Al, last.ix("ell")))
     bl = Al.shape[-1]
-    dense = jnp.zeros((last.n, bl, last.n, bl)).at[jnp.asarray(last.rows), :, jnp.asarray(last.cols), :].add(Al)
+    dense = jnp.zeros((last.n, bl, last.n, bl)).at[last.ix("rows"), :, last.ix("cols"), :].add(Al)
     lu, piv = jax.scipy.linalg.lu_factor(dense.reshape(last.n * bl, last.n * bl))
     mg = Multigrid(tuple(E), tuple(Dinv), tuple(P), tuple(R), jnp.stack(rhos) if rhos else jnp.zeros(0), lu, piv)
     return jax.tree_util.tree_map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, mg)
@@ -453,7 +542,7 @@ def build(hier: Hierarchy, A0, x, dtype=np.float32) -> Multigrid:
 
 def matvec(hier: Hierarchy, mg: Multigrid, x, level=0):
     """The level's matrix times x (n, b)."""
-    return _ell_apply(mg.A[level], hier.levels[level].ell_cols, x)
+    return _ell_apply(mg.A[level], hier.levels[level].ix("ell_cols"), x)
 
 
 def _chebyshev(lv, A, Dinv, rho, rhs, x):
@@ -463,7 +552,8 @@ def _chebyshev(lv, A, Dinv, rho, rhs, x):
     hi, lo = 1.1 * rho, rho / 30.0
     theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
     sigma = theta / delta
-    res = lambda x: _dmul(Dinv, rhs if x is None else rhs - _ell_apply(A, lv.ell_cols, x))  # noqa: E731
+    cols = lv.ix("ell_cols")
+    res = lambda x: _dmul(Dinv, rhs if x is None else rhs - _ell_apply(A, cols, x))  # noqa: E731
     r = res(x)
     d = r / theta
     x = d if x is None else x + d
@@ -488,9 +578,9 @@ def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
         return sol.reshape(rhs.shape)
     A, Dinv, rho = mg.A[level], mg.Dinv[level], mg.rho[level]
     x = _chebyshev(lv, A, Dinv, rho, rhs, None)
-    rc = _restrict(mg.R[level], lv.r_ell_rows, rhs - _ell_apply(A, lv.ell_cols, x))
+    rc = _restrict(mg.R[level], lv.ix("r_ell_rows"), rhs - _ell_apply(A, lv.ix("ell_cols"), x))
     xc = _cycles(hier, mg, rc, GAMMA if level + 2 < len(hier.levels) else 1, level + 1)
-    x = x + _ell_apply(mg.P[level], lv.p_ell_cols, xc)
+    x = x + _ell_apply(mg.P[level], lv.ix("p_ell_cols"), xc)
     return _chebyshev(lv, A, Dinv, rho, rhs, x)
 
 

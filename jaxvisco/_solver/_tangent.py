@@ -97,7 +97,7 @@ def empty_tangent(scheme, scene, solver=None):
     mg = None
     if solver is not None and solver.linear_solver.block_solver(scene) == "amg":
         disc = scene.disc
-        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        hier = _amg.of_scene(k, scene)
         dtype = solver.linear_solver.block_dtype()
         shapes = jax.eval_shape(lambda A, x: _amg.build(hier, A, x, dtype),
                                 jax.ShapeDtypeStruct((hier.levels[0].nnzb, k * d, k * d), float),
@@ -214,6 +214,21 @@ def position_blocks(scheme, scene, ctx, dPdF):
 ELEMENTS_PER_PASS = 2048
 
 
+def multigrid_arguments(scheme, scene, solver):
+    """The index arrays of the multigrid hierarchy that a compiled time loop takes as an
+    argument (`multigrid_scope`): None unless `solver` (a `NewtonKrylov`) solves the
+    position block of `scene` by multigrid. Built on the host (the hierarchy is cached)."""
+    if solver.linear_solver.block_solver(scene) != "amg":
+        return None
+    return _amg.of_scene(scheme.k, scene).arguments()
+
+
+def multigrid_scope(scheme, scene, args):
+    """The context in which a loop's traced code reads the hierarchy's index arrays from
+    `args` (`multigrid_arguments`, an argument of the program), not as constants."""
+    return _amg.arguments(None if args is None else _amg.of_scene(scheme.k, scene), args)
+
+
 def _multigrid_blocks(scheme, scene, ctx, F, G, hier, point):
     """The multigrid path's condensed tangent in one pass over the elements: per pass of
     elements, the points' sensitivities (`point`: `_point_tangent` of one point's F, G and
@@ -238,7 +253,7 @@ def _multigrid_blocks(scheme, scene, ctx, F, G, hier, point):
     dyn, static = (None, None) if mats is None else eqx.partition(mats, eqx.is_array)
     per_cell = lambda a: a.reshape((ne, nq) + a.shape[1:])  # noqa: E731
     cells = dict(F=F, G=G, JxW=disc.JxW, dN=disc.dN, mass=disc.cell_mass(scene.density), free=_free(scene),
-                 target=jnp.asarray(np.asarray(hier.element_map).reshape(ne, -1)),
+                 target=hier.ix("element_map").reshape(ne, -1),
                  mat=None if dyn is None else jax.tree_util.tree_map(per_cell, dyn))
 
     def sensitivities(p):
@@ -282,7 +297,7 @@ def form_tangent(scheme, scene, ctx, U, rotation=None, retain=RETAIN, preconditi
     _, F, G = nodal_fields(scheme, scene, ctx, U)
     rotation = jnp.eye(d) if rotation is None else rotation
     if preconditioner == "amg":
-        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        hier = _amg.of_scene(k, scene)
         point = lambda mat, f, g: _point_tangent(scheme, mat, ctx.h, f, g, d=d)  # noqa: E731
         A0, (Ainv, dGdF, dPdG) = _multigrid_blocks(scheme, scene, ctx, F, G, hier, point)
         mg = _amg.build(hier, A0, ctx.state.x, block_dtype)
@@ -344,7 +359,7 @@ def schur_solve(scheme, scene, ctx, tangent: Tangent, b: Unknowns, rotation=None
         host = position_pattern(disc.cells, k, disc.n_nodes, d, scene.fixed)
         dx = lu_solve(host, tangent.token, bx.reshape(-1)).reshape(bx.shape)
     else:  # multigrid cycles on the node-major layout (n, k d)
-        hier = _amg.hierarchy(disc.cells, k, disc.n_nodes, d, scene.fixed)
+        hier = _amg.of_scene(k, scene)
         nodes = jnp.moveaxis(bx, 0, 1).reshape(disc.n_nodes, k * d)
         dx = jnp.moveaxis(_amg.solve(hier, tangent.mg, nodes, rtol=block_rtol).reshape(disc.n_nodes, k, d), 1, 0)
     turn = (lambda v: v) if R is None else (lambda v: v @ R.T)  # R v per node
