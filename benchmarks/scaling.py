@@ -53,8 +53,21 @@ def worker(element, refinement, steps, h, preconditioner="lu", precision="single
                newton_per_step=float(its.mean()), krylov_per_step=float(kits.mean()),
                chord_per_step=float(np.asarray(sol.chord_iterations).mean()),
                krylov_per_newton=float(kits.sum() / max(its.sum(), 1)),
-               peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+               peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, **_device_memory())
     print("RESULT " + json.dumps(out), flush=True)
+
+
+def _device_memory():
+    """The device the case ran on and, where its runtime reports one (GPUs), the peak of
+    the device memory its buffers held (`memory_stats()['peak_bytes_in_use']`)."""
+    import jax
+
+    dev = jax.devices()[0]
+    out = dict(device=f"{dev.platform}: {getattr(dev, 'device_kind', '')}")
+    stats = dev.memory_stats() if hasattr(dev, "memory_stats") else None
+    if stats and "peak_bytes_in_use" in stats:
+        out["device_peak_mb"] = stats["peak_bytes_in_use"] / 2**20
+    return out
 
 
 def run_case(element, refinement, steps, h, timeout, preconditioner="lu", precision="single"):
@@ -127,6 +140,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="hex8 refinement 1 and 2 only")
     p.add_argument("--max-refinement", type=int, default=None)
+    p.add_argument("--refinements", default=None,
+                   help="comma-separated refinements to run (instead of 1 .. --max-refinement)")
     p.add_argument("--elements", default="hex8,tet4")
     p.add_argument("--timeout", type=float, default=None, help="wall-clock limit of one case [s]")
     p.add_argument("--max-dofs", type=int, default=120_000)
@@ -156,7 +171,7 @@ def main(argv=None):
         rows += [r for r in old["rows"] if r["element"] not in elements]
         data["settings"]["earlier_rows_from"] = old["machine"]["date"]
     for el in elements:
-        for r in range(1, max_r + 1):
+        for r in ([int(x) for x in a.refinements.split(",")] if a.refinements else range(1, max_r + 1)):
             dofs = lshape_dofs(el, r)
             if dofs > a.max_dofs:
                 print(f"{el} r{r}: {dofs} DOFs > cap {a.max_dofs}, stop", flush=True)
