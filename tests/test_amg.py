@@ -9,12 +9,16 @@
   and chunks (as on large meshes), the multigrid equals the one-pass form.
 - A run on the multigrid path ends where the direct (host LU) path does, to the Newton
   tolerance: 2D and 3D (hex8, tet4, hex20), free flight and held nodes, eG(1) and eG(2).
+- The compiled time loop takes the hierarchy's index arrays as arguments, not as
+  constants, and takes the same steps as with them as constants.
 - Reverse-mode gradients through a run on the multigrid path (the implicit step
   derivative solved by GMRES with the multigrid, transposed) equal central finite
   differences.
 
 The meshes here are small, so `MAX_COARSE` is lowered to force several levels.
 """
+
+import re
 
 import equinox as eqx
 import jax
@@ -335,8 +339,6 @@ def test_restarted_gmres_on_the_multigrid_path(monkeypatch):
 
 def _int_constant_elements(text):
     """Elements of the integer array constants in a lowered program's text."""
-    import re
-
     total = 0
     for dims in re.findall(r"stablehlo\.constant dense<[^\n]*?> : tensor<((?:\d+x)+)i(?:32|64)>", text):
         total += int(np.prod([int(d) for d in dims.rstrip("x").split("x")]))
