@@ -28,8 +28,13 @@ def solver_for(preconditioner, precision="single"):
     return jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=preconditioner, multigrid_precision=precision))
 
 
-def worker(element, refinement, steps, h, preconditioner="lu", precision="single"):
+def worker(element, refinement, steps, h, preconditioner="lu", precision="single", cycles=None):
     import resource
+
+    from jaxvisco._solver import _amg
+
+    if cycles is not None:  # read when the loop is traced
+        _amg.CYCLES = cycles
 
     t0 = time.perf_counter()
     scene = lshape(3, refinement, element=element, mass="consistent")
@@ -47,7 +52,8 @@ def worker(element, refinement, steps, h, preconditioner="lu", precision="single
     sol = go()
     wall = time.perf_counter() - t0
     its, kits = np.asarray(sol.newton_iterations), np.asarray(sol.krylov_iterations)
-    out = dict(element=element, refinement=refinement, preconditioner=preconditioner, multigrid_precision=precision, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
+    out = dict(element=element, refinement=refinement, preconditioner=preconditioner, multigrid_precision=precision,
+               multigrid_cycles=_amg.CYCLES, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
                n_gamma=int(scene.gamma0.size // 9 * 6), steps=steps, h=h, status=sol.status,
                ms_per_step=1e3 * wall / steps, compile_s=first - wall, first_call_s=first, build_s=build_s,
                newton_per_step=float(its.mean()), krylov_per_step=float(kits.mean()),
@@ -70,8 +76,9 @@ def _device_memory():
     return out
 
 
-def run_case(element, refinement, steps, h, timeout, preconditioner="lu", precision="single"):
-    cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h), preconditioner, precision]
+def run_case(element, refinement, steps, h, timeout, preconditioner="lu", precision="single", cycles=None):
+    cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h), preconditioner, precision,
+           str(cycles or 0)]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -134,8 +141,8 @@ def plot(rows, path):
 
 def main(argv=None):
     if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--worker":
-        _, _, element, r, steps, h, preconditioner, precision = sys.argv
-        worker(element, int(r), int(steps), float(h), preconditioner, precision)
+        _, _, element, r, steps, h, preconditioner, precision, cycles = sys.argv
+        worker(element, int(r), int(steps), float(h), preconditioner, precision, int(cycles) or None)
         return
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="hex8 refinement 1 and 2 only")
@@ -151,6 +158,8 @@ def main(argv=None):
                    help="block solve of GMRES's preconditioner: host LU (default) or multigrid")
     p.add_argument("--multigrid-precision", default="single", choices=("single", "double"),
                    help="arithmetic of the multigrid's cycles (GMRES(multigrid_precision=))")
+    p.add_argument("--cycles", type=int, default=None,
+                   help="W-cycles per application of the multigrid preconditioner (default: _amg.CYCLES)")
     p.add_argument("--append", action="store_true", help="keep the rows of other elements already in the file")
     p.add_argument("--memory-fraction", type=float, default=0.5,
                    help="skip a case whose peak RSS, extrapolated from the smaller ones, exceeds this fraction "
@@ -184,7 +193,7 @@ def main(argv=None):
                 rows.append(dict(element=el, refinement=r, dofs=dofs, status=msg))
                 print(f"{el} r{r}: {msg}", flush=True)
                 break
-            res = run_case(el, r, steps, 0.1, timeout, a.preconditioner, a.multigrid_precision)
+            res = run_case(el, r, steps, 0.1, timeout, a.preconditioner, a.multigrid_precision, a.cycles)
             res.setdefault("dofs", dofs)
             rows.append(res)
             print(json.dumps(res), flush=True)
