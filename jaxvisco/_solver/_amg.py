@@ -114,6 +114,7 @@ class Level(_Indexed):
         self.diag = _find(rows, cols, np.arange(n), np.arange(n), n)
         self.ell, self.ell_cols = _ell(self.rows, self.cols, n)
         self.agg = self.slot = self.members = None  # set by `_coarsen` (not on the coarsest level)
+        self._index = (None, None)  # (PRODUCTS_PER_CHUNK, `index_arrays()`) of the last call
 
     @property
     def nnzb(self):
@@ -122,7 +123,7 @@ class Level(_Indexed):
     def index_arrays(self):
         """The level's index arrays that traced code reads (`ix`), the block products'
         lists chunked as `_block_products` scans them (by `PRODUCTS_PER_CHUNK`)."""
-        if getattr(self, "_index", (None,))[0] != PRODUCTS_PER_CHUNK:
+        if self._index[0] != PRODUCTS_PER_CHUNK:
             names = ("rows", "cols", "diag", "ell", "ell_cols", "agg", "slot", "members", "p_rows", "p_diag",
                      "p_ell", "p_ell_cols", "r_ell", "r_ell_rows")
             out = {n: getattr(self, n) for n in names if getattr(self, n, None) is not None}
