@@ -89,6 +89,46 @@ def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch)
         assert isinstance(w, Unknowns) and w.g is not None
 
 
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("scheme", [jv.eG(1), jv.eG(2), jv.cG(2)], ids=lambda s: s.name)
+@pytest.mark.parametrize("d,viscous", [(3, True), (2, True), (3, False)], ids=["3D", "2D", "3D-elastic"])
+def test_point_tangent_by_directions_equals_jacfwd(scheme, d, viscous):
+    """The multigrid path's point sensitivities (`jacobian_by_directions`: one JVP per
+    direction, a scan unrolled by 5 that leaves a remainder for 10 and 20 directions)
+    equal `jax.jacfwd`'s at strained points, to rounding."""
+    rng = np.random.default_rng(7)
+    nh = jv.NeoHooke(lam=3000.0, mu=750.0)
+    material = jv.ReeseGovindjee(nh, nh if viscous else None, eta_dev=50.0, eta_vol=10.0)
+    n, k = 6, scheme.k
+    F = jnp.asarray(np.eye(3) + 0.1 * rng.standard_normal((n, k + 1, 3, 3)))
+    if d == 2:
+        F = F.at[..., 2, :2].set(0.0).at[..., :2, 2].set(0.0)
+    G = None
+    if viscous:
+        a = 0.05 * rng.standard_normal((n, k + 1, 3, 3))
+        G = jnp.asarray(np.eye(3) + a + np.swapaxes(a, -1, -2))
+    point = lambda directions: jax.jit(jax.vmap(lambda f, g: _tangent._point_tangent(  # noqa: E731
+        scheme, material, 0.1, f, g, d=d, directions=directions)))
+    by_directions, forward = point(True)(F, G), point(False)(F, G)
+    for a, b in zip(by_directions, forward):
+        if b is None:
+            assert a is None
+            continue
+        assert a.shape == b.shape
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(b))))
+
+
+def test_jacobian_by_directions_of_three_inputs():
+    def fun(a, b, c):
+        return {"u": jnp.sin(a) @ b, "v": jnp.exp(c) * jnp.sum(a)}
+
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    xs = (jax.random.normal(keys[0], (2, 3)), jax.random.normal(keys[1], (3,)), jax.random.normal(keys[2], (2,)))
+    got = _tangent.jacobian_by_directions(fun, *xs)  # 11 directions: two of 5 and a remainder
+    want = jax.jacfwd(fun, argnums=(0, 1, 2))(*xs)
+    jax.tree_util.tree_map(functools.partial(np.testing.assert_allclose, rtol=1e-14, atol=1e-14), got, want)
+
+
 @pytest.mark.timeout(120)
 def test_map_in_passes_values_and_derivatives():
     """`map_in_passes` on rows that do not fill the last pass (23 rows in passes of 5):
