@@ -94,8 +94,7 @@ def test_jacobian_and_block_solve_are_exact(scheme, viscous, fixed, monkeypatch)
 @pytest.mark.parametrize("d,viscous", [(3, True), (2, True), (3, False)], ids=["3D", "2D", "3D-elastic"])
 def test_point_tangent_by_directions_equals_jacfwd(scheme, d, viscous):
     """The multigrid path's point sensitivities (`jacobian_by_directions`: one JVP per
-    direction, a scan unrolled by 5 that leaves a remainder for 10 and 20 directions)
-    equal `jax.jacfwd`'s at strained points, to rounding."""
+    direction in a scan) equal `jax.jacfwd`'s at strained points, to rounding."""
     rng = np.random.default_rng(7)
     nh = jv.NeoHooke(lam=3000.0, mu=750.0)
     material = jv.ReeseGovindjee(nh, nh if viscous else None, eta_dev=50.0, eta_vol=10.0)
@@ -118,13 +117,16 @@ def test_point_tangent_by_directions_equals_jacfwd(scheme, d, viscous):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(b))))
 
 
-def test_jacobian_by_directions_of_three_inputs():
+@pytest.mark.parametrize("unroll", [1, 5])
+def test_jacobian_by_directions_of_three_inputs(unroll, monkeypatch):
+    monkeypatch.setattr(_tangent, "DIRECTIONS_PER_ITERATION", unroll)
+
     def fun(a, b, c):
         return {"u": jnp.sin(a) @ b, "v": jnp.exp(c) * jnp.sum(a)}
 
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     xs = (jax.random.normal(keys[0], (2, 3)), jax.random.normal(keys[1], (3,)), jax.random.normal(keys[2], (2,)))
-    got = _tangent.jacobian_by_directions(fun, *xs)  # 11 directions: two of 5 and a remainder
+    got = _tangent.jacobian_by_directions(fun, *xs)  # 11 directions: unrolled by 5, a remainder
     want = jax.jacfwd(fun, argnums=(0, 1, 2))(*xs)
     jax.tree_util.tree_map(functools.partial(np.testing.assert_allclose, rtol=1e-14, atol=1e-14), got, want)
 

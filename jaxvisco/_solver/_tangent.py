@@ -110,22 +110,23 @@ def empty_tangent(scheme, scene, solver=None):
     return Tangent(*head, z((ne, nq, 6 * k, 6 * k)), z((ne, nq, 6 * k, dd * k)), z((ne, nq, nq_t * dd, 6 * k)), mg)
 
 
-# Directions of the forward Jacobian taken per iteration of `jacobian_by_directions`.
-DIRECTIONS_PER_ITERATION = 5
+# JVPs unrolled per iteration of `jacobian_by_directions`' scan (see there).
+DIRECTIONS_PER_ITERATION = 1
 
 
 def jacobian_by_directions(fun, *xs):
     """`jax.jacfwd(fun, argnums=(0, 1, ...))(*xs)` as one JVP of `fun` per input component,
-    `DIRECTIONS_PER_ITERATION` of them unrolled per iteration of a scan.
+    in a scan over the directions (`DIRECTIONS_PER_ITERATION` unrolled per iteration).
 
     Why: `jacfwd` pushes all directions through the program at once, batched over a
-    direction axis; one direction at a time fuses like the residual's JVP, and the
-    unrolled JVPs of an iteration share their primal (XLA merges the copies). The
-    multigrid path's element blocks (`_multigrid_blocks`) of the 3D L-shape hex8 r4, eG(1)
-    (15 directions per point; five interleaved rounds, medians): `jacfwd` 1.71 s, this
-    1.19 s; all 15 unrolled 1.23 s but compiled in 12.9 against 5.0 s (this: 7-9 s);
-    a plain loop of JVPs (no unrolling) 1.26 s at r4 and 2.68 s against 3.01 s at r5;
-    one linearization and a loop over its linear map 1.31 s (unrolled by 5)."""
+    direction axis whose layouts cost transposes and copies; one direction at a time
+    runs like the residual's JVP. The multigrid path's element blocks
+    (`_multigrid_blocks`, 15 directions per point) of the 3D L-shape hex8, eG(1), five
+    interleaved rounds, medians: r6 `jacfwd` 5.78 s, this 4.73 s, unrolled by 5 4.12 s
+    (r5: 3.01 / 2.68 / 2.06 s with all 15 unrolled; r4: 1.71-1.76 / 1.26 / 1.19-1.31 s).
+    Unrolled JVPs share their primal (XLA merges the copies) but the time loop that
+    holds them compiled 6-10 s longer at r2 (27-32 s against 17-27 s, noisy machine),
+    a cost most runs would not earn back; one per iteration compiles like `jacfwd`."""
     sizes = [x.size for x in xs]
     offs = np.cumsum([0] + sizes)
 
