@@ -245,6 +245,18 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     U_start, chord_its, chord_done = U0, jnp.asarray(0), jnp.asarray(False)
     chord_state = None
     if solver.chord and not direct:
+        if lin.memory_first(scene):
+            # The multigrid path (large 3D meshes) forms a stale tangent at the predictor and
+            # starts with chord iterations, as a step with a fitting tangent does, instead of
+            # Newton–Krylov from there: a Krylov vector (a JVP, two to three residuals there,
+            # and four W-cycles) costs about what a chord iteration does, and the first step
+            # took 3 Newton iterations with 10 Krylov vectors (hex8 r8). Not on the LU path:
+            # the loop holds a second copy of the formation here, which the small meshes'
+            # runs, dominated by their compile time, would pay for.
+            tangent = jax.lax.cond(stale, lambda: form_tangent(scheme, scene, ctx, U0, rotation, solver.retain,
+                                                               lin.block_solver(scene), lin.block_dtype()),
+                                   lambda: tangent)
+            stale = jnp.asarray(False)
         chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res)
         U_start, chord_its, chord_done = chord_state["U"], chord_state["it"], chord_state["done"]
     init = dict(U=U_start, R=zero,
