@@ -6,7 +6,8 @@ Each (element, refinement) runs in its own subprocess, so that its peak resident
 (the RSS high-water mark, `ru_maxrss`, which includes XLA's buffers and compiled code) is
 its own. Per case: eG(1) with h = 0.1 for a few steps; ms per step (after compilation),
 Newton and Krylov iterations per step, compile time (first call minus a timed call), peak
-RSS. Refinements grow until a case exceeds the per-case wall-clock limit or the DOF cap;
+RSS; with more than one step, the first step (it forms the tangent) and the later ones
+(they reuse it) timed apart by a one-step call of the same compiled loop. Refinements grow until a case exceeds the per-case wall-clock limit or the DOF cap;
 the log–log slope of ms/step against DOFs is fitted over the cases that ran. Writes
 benchmarks/results/scaling.json and scaling.png.
 """

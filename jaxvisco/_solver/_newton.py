@@ -69,7 +69,9 @@ class NewtonKrylov(eqx.Module):
       They go on while the residual (max norm) contracts by `chord_contraction` per
       iteration and end the step at `rtol`; the first one that contracts less is
       discarded, and Newton–Krylov continues from the last point that did. They are
-      counted in `Solution.chord_iterations`, not in `newton_iterations`.
+      counted in `Solution.chord_iterations`, not in `newton_iterations`. On the
+      multigrid path (`GMRES(preconditioner="amg")`, large 3D meshes) a step whose tangent
+      does not fit forms one at its predictor and starts with chord iterations too.
     - `chord_contraction`: the contraction a chord iteration must reach (0.5).
     - `retain`: factorizations of the condensed tangent that stay alive on the host
       (least recently used go first; at most 2 GiB). A run needs one or two; the
