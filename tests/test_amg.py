@@ -213,7 +213,10 @@ def test_multigrid_path_matches_direct(dim, r, element, held, k, monkeypatch):
 def test_chord_iterations_solve_the_block_to_their_tolerance(monkeypatch):
     """The chord iterations on the multigrid path solve the position block to
     `_amg.CHORD_RTOL`: made tight, they take the same steps as on the exact host LU
-    (same chord and Newton counts, same end state); with one fixed cycle they need more."""
+    (same chord and Newton counts once a tangent is stored, same end state); with one
+    fixed cycle they need more. The first step differs by design: on the multigrid path
+    it forms its tangent at the predictor and converges by chord iterations alone, where
+    the LU path takes Newton–Krylov iterations (which form the tangent at the same point)."""
     monkeypatch.setattr(_amg, "MAX_COARSE", 40)
     # `CHORD_RTOL` is read when the loop is traced: no program from memory or from disk
     monkeypatch.setenv("JAXVISCO_EXPORT", "off")
@@ -233,8 +236,10 @@ def test_chord_iterations_solve_the_block_to_their_tolerance(monkeypatch):
     monkeypatch.setattr(_amg, "CHORD_RTOL", 1e-10)
     monkeypatch.setattr(_amg, "MAX_CYCLES", 60)
     tight = run("amg")
-    np.testing.assert_array_equal(np.asarray(tight.chord_iterations), np.asarray(lu.chord_iterations))
-    np.testing.assert_array_equal(np.asarray(tight.newton_iterations), np.asarray(lu.newton_iterations))
+    np.testing.assert_array_equal(np.asarray(tight.chord_iterations)[1:], np.asarray(lu.chord_iterations)[1:])
+    np.testing.assert_array_equal(np.asarray(tight.newton_iterations)[1:], np.asarray(lu.newton_iterations)[1:])
+    assert np.asarray(lu.newton_iterations)[0] > 0 and np.asarray(lu.chord_iterations)[0] == 0
+    assert np.asarray(tight.newton_iterations)[0] == 0 and np.asarray(tight.chord_iterations)[0] > 0
     scale = np.abs(np.asarray(lu.x[-1])).max()
     np.testing.assert_allclose(np.asarray(tight.x[-1]), np.asarray(lu.x[-1]), rtol=0, atol=1e-8 * scale)
     monkeypatch.setattr(_amg, "CHORD_RTOL", 0.9)  # one cycle (its rate is ~0.4)

@@ -250,9 +250,11 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         if lin.memory_first(scene):
             # The multigrid path (large 3D meshes) forms a stale tangent at the predictor and
             # starts with chord iterations, as a step with a fitting tangent does, instead of
-            # Newton–Krylov from there: a Krylov vector (a JVP, two to three residuals there,
-            # and four W-cycles) costs about what a chord iteration does, and the first step
-            # took 3 Newton iterations with 10 Krylov vectors (hex8 r8). Not on the LU path:
+            # Newton–Krylov from there. A Krylov vector there (a JVP, 2.7 residuals, and four
+            # W-cycles: 2.2 s at hex8 r9) costs more than a chord iteration (a residual and
+            # cycles to a 50-fold reduction: 1.4 s), and the first step took 3 Newton
+            # iterations with 10 Krylov vectors (hex8 r8: first step 33.2 -> 26.4 s, none
+            # left; the time loop compiled in 83 s instead of 68 s). Not on the LU path:
             # the loop holds a second copy of the formation here, which the small meshes'
             # runs, dominated by their compile time, would pay for.
             tangent = jax.lax.cond(stale, lambda: form_tangent(scheme, scene, ctx, U0, rotation, solver.retain,
