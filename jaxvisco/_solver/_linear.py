@@ -71,7 +71,8 @@ class GMRES(AbstractLinearSolver):
 
     **Arguments:**
     - `max_steps`: Krylov vectors per Newton iteration (60).
-    - `refresh_after`: re-form the tangent once GMRES needed more vectors than this (5).
+    - `refresh_after`: re-form the tangent once GMRES needed more vectors than this (5);
+      on the multigrid path at the start of the next step (`NewtonKrylov`'s `chord`).
     - `backend`: ``"jaxvisco"`` (default: a GMRES that checks the residual after every
       Arnoldi step, `_fem._krylov.gmres`) or ``"lineax"`` (lineax's `GMRES`, restarted
       every 5 vectors; it checks convergence once per restart cycle and needs two cycles,

@@ -71,7 +71,8 @@ class NewtonKrylov(eqx.Module):
       discarded, and Newton–Krylov continues from the last point that did. They are
       counted in `Solution.chord_iterations`, not in `newton_iterations`. On the
       multigrid path (`GMRES(preconditioner="amg")`, large 3D meshes) a step whose tangent
-      does not fit forms one at its predictor and starts with chord iterations too.
+      does not fit forms one at its predictor and starts with chord iterations too, and
+      Newton–Krylov keeps the tangent of its step (see `refresh_after`).
     - `chord_contraction`: the contraction a chord iteration must reach (0.5).
     - `retain`: factorizations of the condensed tangent that stay alive on the host
       (least recently used go first; at most 2 GiB). A run needs one or two; the
@@ -204,9 +205,10 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         refresh = c["refresh"] | (c["n_ls"] > 0)  # a step that needed backtracking
 
         def newton_step(tan):
-            tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation, solver.retain,
-                                                              lin.block_solver(scene), lin.block_dtype()),
-                               lambda: tan)
+            if not form_at_start:
+                tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation, solver.retain,
+                                                                  lin.block_solver(scene), lin.block_dtype()),
+                                   lambda: tan)
             precond = lambda r: schur_solve(scheme, scene, ctx, tan, _scaled(r, 1.0 / sx), rotation)  # noqa: E731
             rhs = jax.tree_util.tree_map(jnp.negative, _scaled(Rt, sx))
             if direct:
@@ -238,6 +240,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             a=jnp.where(accept, 1.0, 0.5 * c["a"]), n_ls=jnp.where(accept, 0, c["n_ls"] + 1),
             it=c["it"] + go_on.astype(int) + first.astype(int), kits=c["kits"] + n_lin, tan=tan,
             refresh=jnp.where(accept, direct or (n_lin > lin.refresh_after), c["refresh"]),
+            asked=c["asked"] | (go_on & refresh),  # a Newton step that wanted a fresh tangent
             pending=go_on | ~accept,
         )
 
@@ -246,34 +249,39 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     zero = jax.tree_util.tree_map(jnp.zeros_like, U0)
     U_start, chord_its, chord_done = U0, jnp.asarray(0), jnp.asarray(False)
     chord_state = None
+    form_at_start = lin.memory_first(scene) and not direct
+    if form_at_start:
+        # The multigrid path (large 3D meshes) forms a stale tangent at the predictor, the
+        # one place its loop forms one: the step then starts with chord iterations, as a
+        # step with a fitting tangent does, and Newton–Krylov keeps that tangent (a
+        # refresh it asks for marks the tangent stale for the next step instead). There a
+        # Krylov vector (a JVP, 2.7 residuals, and four W-cycles: 2.2 s at hex8 r9) costs
+        # more than a chord iteration (a residual and cycles to a 50-fold reduction:
+        # 1.4 s); the first step used to take 3 Newton iterations with 10 Krylov vectors
+        # (hex8 r8: first step 33.2 -> 26.4 s, none left); and one copy of the formation
+        # in the compiled loop instead of two compiles faster (hex8 r8: 68 s with Newton's
+        # copy only; 83 s with both). The LU path (small meshes) keeps Newton's refresh.
+        tangent = jax.lax.cond(stale, lambda: form_tangent(scheme, scene, ctx, U0, rotation, solver.retain,
+                                                           lin.block_solver(scene), lin.block_dtype()),
+                               lambda: tangent)
+        stale = jnp.asarray(False)
     if solver.chord and not direct:
-        if lin.memory_first(scene):
-            # The multigrid path (large 3D meshes) forms a stale tangent at the predictor and
-            # starts with chord iterations, as a step with a fitting tangent does, instead of
-            # Newton–Krylov from there. A Krylov vector there (a JVP, 2.7 residuals, and four
-            # W-cycles: 2.2 s at hex8 r9) costs more than a chord iteration (a residual and
-            # cycles to a 50-fold reduction: 1.4 s), and the first step took 3 Newton
-            # iterations with 10 Krylov vectors (hex8 r8: first step 33.2 -> 26.4 s, none
-            # left; the time loop compiled in 83 s instead of 68 s). Not on the LU path:
-            # the loop holds a second copy of the formation here, which the small meshes'
-            # runs, dominated by their compile time, would pay for.
-            tangent = jax.lax.cond(stale, lambda: form_tangent(scheme, scene, ctx, U0, rotation, solver.retain,
-                                                               lin.block_solver(scene), lin.block_dtype()),
-                                   lambda: tangent)
-            stale = jnp.asarray(False)
         chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res)
         U_start, chord_its, chord_done = chord_state["U"], chord_state["it"], chord_state["done"]
     init = dict(U=U_start, R=zero,
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
                 a=jnp.asarray(0.0), n_ls=jnp.asarray(0), it=jnp.asarray(-1), kits=jnp.asarray(0),
-                tan=tangent, refresh=stale, pending=~chord_done)
+                tan=tangent, refresh=stale, asked=jnp.asarray(False), pending=~chord_done)
     c = jax.lax.while_loop(lambda c: c["pending"], body, init)
     if chord_state is not None:
         c = dict(c, norm=jnp.where(chord_done, chord_state["norm"], c["norm"]),
                  prev=jnp.where(chord_done, chord_state["prev"], c["prev"]),
                  it=jnp.where(chord_done, 0, c["it"]))
     converged = done(c["norm"], c["prev"])
-    tan = eqx.tree_at(lambda t: t.stale, c["tan"], (~converged) | (c["it"] > solver.reuse_limit))
+    stale_after = (~converged) | (c["it"] > solver.reuse_limit)
+    if form_at_start:  # a refresh Newton asked for (it does not form here): at the next step
+        stale_after = stale_after | c["asked"]
+    tan = eqx.tree_at(lambda t: t.stale, c["tan"], stale_after)
     return NewtonResult(c["U"], converged, c["it"], c["kits"], chord_its, c["norm"], tan)
 
 
