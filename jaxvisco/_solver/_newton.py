@@ -258,9 +258,10 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         # Krylov vector (a JVP, 2.7 residuals, and four W-cycles: 2.2 s at hex8 r9) costs
         # more than a chord iteration (a residual and cycles to a 50-fold reduction:
         # 1.4 s); the first step used to take 3 Newton iterations with 10 Krylov vectors
-        # (hex8 r8: first step 33.2 -> 26.4 s, none left); and one copy of the formation
-        # in the compiled loop instead of two compiles faster (hex8 r8: 68 s with Newton's
-        # copy only; 83 s with both). The LU path (small meshes) keeps Newton's refresh.
+        # (hex8 r8: first step 33.2 -> 21.6-26.4 s, none left); and one copy of the
+        # formation in the compiled loop instead of two compiles faster (hex8 r8: 83 s
+        # with both copies, 58-59 s with this one). The LU path (small meshes) keeps
+        # Newton's refresh.
         tangent = jax.lax.cond(stale, lambda: form_tangent(scheme, scene, ctx, U0, rotation, solver.retain,
                                                            lin.block_solver(scene), lin.block_dtype()),
                                lambda: tangent)
