@@ -385,3 +385,32 @@ def test_time_loop_takes_the_hierarchy_as_arguments(monkeypatch):
         np.testing.assert_array_equal(np.asarray(getattr(ref, name))[:n], np.asarray(getattr(sol, name)))
     x, x_ref = np.asarray(sol.x), np.asarray(ref.x)[: len(sol.x)]
     np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-12 * np.abs(x_ref).max())
+
+
+@pytest.mark.timeout(600)
+def test_multigrid_step_forms_a_stale_tangent_at_its_start(monkeypatch):
+    """On the multigrid path a step with a stale tangent forms one at its predictor (the
+    one place it forms one) and converges; Newton–Krylov keeps it, and a refresh it asks
+    for (`refresh_after=0`: after any Krylov vector) marks the returned tangent stale for
+    the next step, where without one the tangent is kept fitting."""
+    from jaxvisco._solver._newton import solve_step
+
+    monkeypatch.setattr(_amg, "MAX_COARSE", 40)
+    scene, scheme = _scene(2, 2), jv.eG(1)
+    ctx = make_context(scene, scene.initial_state(), 0.0, 0.1)
+    U0 = predictor(scheme, scene, ctx, scene.v0)
+
+    def step(refresh_after, chord):
+        solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner="amg", refresh_after=refresh_after), chord=chord)
+        tan0 = _tangent.empty_tangent(scheme, scene, solver)
+        out = jax.jit(lambda c, u, t: solve_step(solver, scheme, scene, c, u, t))(ctx, U0, tan0)
+        assert bool(out.converged)
+        return out
+
+    kept = step(30, 0)  # Newton–Krylov from a fresh tangent, no refresh asked
+    assert int(kept.iterations) > 0 and int(kept.krylov_iterations) > 0
+    assert not bool(kept.tangent.stale) and float(kept.tangent.h) == 0.1
+    asked = step(0, 0)
+    assert int(asked.krylov_iterations) > 0 and bool(asked.tangent.stale)
+    chord = step(30, 10)  # the default start: chord iterations on the tangent formed at the predictor
+    assert int(chord.chord_iterations) > 0 and int(chord.iterations) == 0 and not bool(chord.tangent.stale)
