@@ -180,6 +180,9 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     stale = direct | tangent.stale | (tangent.h != ctx.h)
     rotation = body_rotation(scene, ctx.state.x)
 
+    def form(U):  # the condensed tangent at U, carried along the body's rotation from here
+        return form_tangent(scheme, scene, ctx, U, rotation, solver.retain, lin.block_solver(scene), lin.block_dtype())
+
     def done(norm, prev):
         return (norm <= solver.rtol) | ((norm <= 1e3 * solver.rtol) & (norm > 0.5 * prev))
 
@@ -206,9 +209,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
 
         def newton_step(tan):
             if not form_at_start:
-                tan = jax.lax.cond(refresh, lambda: form_tangent(scheme, scene, ctx, Ut, rotation, solver.retain,
-                                                                  lin.block_solver(scene), lin.block_dtype()),
-                                   lambda: tan)
+                tan = jax.lax.cond(refresh, lambda: form(Ut), lambda: tan)
             precond = lambda r: schur_solve(scheme, scene, ctx, tan, _scaled(r, 1.0 / sx), rotation)  # noqa: E731
             rhs = jax.tree_util.tree_map(jnp.negative, _scaled(Rt, sx))
             if direct:
@@ -262,9 +263,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         # formation in the compiled loop instead of two compiles faster (hex8 r8: 83 s
         # with both copies, 58-59 s with this one). The LU path (small meshes) keeps
         # Newton's refresh.
-        tangent = jax.lax.cond(stale, lambda: form_tangent(scheme, scene, ctx, U0, rotation, solver.retain,
-                                                           lin.block_solver(scene), lin.block_dtype()),
-                               lambda: tangent)
+        tangent = jax.lax.cond(stale, lambda: form(U0), lambda: tangent)
         stale = jnp.asarray(False)
     if solver.chord and not direct:
         chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res)

@@ -155,6 +155,10 @@ def _point_tangent(scheme, material, h, F, G, d=3, directions=False):
     k = scheme.k
     F0, Fu = F[0], F[1:]
     dd = d * d
+    if directions:
+        jac = jacobian_by_directions
+    else:
+        jac = lambda f, *x: jax.jacfwd(f, argnums=tuple(range(len(x))))(*x)  # noqa: E731
 
     def full(fu):  # the d x d components into the point's F at the new nodes
         return Fu.at[:, :d, :d].set(fu.reshape(k, d, d))
@@ -165,7 +169,7 @@ def _point_tangent(scheme, material, h, F, G, d=3, directions=False):
         def fun(fu):
             P, _ = scheme.point_kernel(material, jnp.concatenate([F0[None], full(fu)]), None, h)
             return P[:, :d, :d]
-        dP_dF = jacobian_by_directions(fun, fu)[0] if directions else jax.jacfwd(fun)(fu)
+        (dP_dF,) = jac(fun, fu)
         return dP_dF.reshape(-1, dd * k), None, None, None
 
     G0 = G[0]
@@ -176,7 +180,6 @@ def _point_tangent(scheme, material, h, F, G, d=3, directions=False):
                                    jnp.concatenate([G0[None], vec_to_sym(gu)]), h)
         return P[:, :d, :d], R
 
-    jac = jacobian_by_directions if directions else lambda f, *x: jax.jacfwd(f, argnums=(0, 1))(*x)
     (dP_dF, dP_dg), (dR_dF, dR_dg) = jac(fun, fu, gu)
     nP = dP_dF.shape[0] * dd
     Ainv = small_inv(dR_dg.reshape(6 * k, 6 * k))
