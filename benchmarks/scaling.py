@@ -23,13 +23,17 @@ from common import RESULTS, jv, lshape, machine, write_json  # noqa: I001
 import numpy as np  # noqa: E402
 
 
-def solver_for(preconditioner, precision="single"):
+def solver_for(preconditioner, precision="single", chord=None):
     """The solver of a case: the defaults with the block solve forced to `preconditioner`
-    (and the multigrid's arithmetic to `precision`)."""
-    return jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=preconditioner, multigrid_precision=precision))
+    (and the multigrid's arithmetic to `precision`; `chord`: chord iterations per step,
+    None for `NewtonKrylov`'s default, 0 for Newton–Krylov iterations only)."""
+    extra = {} if chord is None else dict(chord=chord)
+    return jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=preconditioner, multigrid_precision=precision),
+                           **extra)
 
 
-def worker(element, refinement, steps, h, preconditioner="lu", precision="single", cycles=None):
+def worker(element, refinement, steps, h, preconditioner="lu", precision="single", cycles=None, chord=None,
+           counts_only=False):
     import resource
 
     from jaxvisco._solver import _amg
@@ -42,18 +46,23 @@ def worker(element, refinement, steps, h, preconditioner="lu", precision="single
     build_s = time.perf_counter() - t0
     dofs = int(scene.mesh.n_nodes * 3)
 
+    solver = solver_for(preconditioner, precision, chord)
+
     def go(n=steps):  # n < steps: the same compiled loop (max_steps), n steps of it active
         return jv.simulate(scene, jv.eG(1), t1=n * h, dt0=h, saveat=jv.SaveAt(every=steps), max_steps=steps,
-                           solver=solver_for(preconditioner, precision))
+                           solver=solver)
 
     t0 = time.perf_counter()
     sol = go()
     first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    sol = go()
-    wall = time.perf_counter() - t0
     split = {}
-    if steps > 1:  # the first step (it forms the tangent) and the steps after it, which reuse it
+    if counts_only:  # one call: the iteration counts and the memory, no step times
+        wall = None
+    else:
+        t0 = time.perf_counter()
+        sol = go()
+        wall = time.perf_counter() - t0
+    if steps > 1 and not counts_only:  # the first step (it forms the tangent) and the steps after it, which reuse it
         t0 = time.perf_counter()
         one = go(1)
         first_step = time.perf_counter() - t0
@@ -61,12 +70,14 @@ def worker(element, refinement, steps, h, preconditioner="lu", precision="single
                      first_step_status=one.status)
     its, kits = np.asarray(sol.newton_iterations), np.asarray(sol.krylov_iterations)
     out = dict(element=element, refinement=refinement, preconditioner=preconditioner, multigrid_precision=precision,
-               multigrid_cycles=_amg.CYCLES, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
+               multigrid_cycles=_amg.CYCLES, chord=solver.chord, dofs=dofs, n_cells=int(scene.mesh.cells.shape[0]),
                n_gamma=int(scene.gamma0.size // 9 * 6), steps=steps, h=h, status=sol.status,
-               ms_per_step=1e3 * wall / steps, compile_s=first - wall, first_call_s=first, build_s=build_s,
+               **({} if counts_only else dict(ms_per_step=1e3 * wall / steps, compile_s=first - wall)),
+               first_call_s=first, build_s=build_s,
                newton_per_step=float(its.mean()), krylov_per_step=float(kits.mean()),
                chord_per_step=float(np.asarray(sol.chord_iterations).mean()),
                krylov_per_newton=float(kits.sum() / max(its.sum(), 1)),
+               newton_by_step=its.tolist(), krylov_by_step=kits.tolist(),
                peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, **split, **_device_memory())
     print("RESULT " + json.dumps(out), flush=True)
 
@@ -84,9 +95,10 @@ def _device_memory():
     return out
 
 
-def run_case(element, refinement, steps, h, timeout, preconditioner="lu", precision="single", cycles=None):
+def run_case(element, refinement, steps, h, timeout, preconditioner="lu", precision="single", cycles=None,
+             chord=None, counts_only=False):
     cmd = [sys.executable, __file__, "--worker", element, str(refinement), str(steps), str(h), preconditioner, precision,
-           str(cycles or 0)]
+           str(cycles or 0), str(-1 if chord is None else chord), str(int(counts_only))]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -149,8 +161,9 @@ def plot(rows, path):
 
 def main(argv=None):
     if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--worker":
-        _, _, element, r, steps, h, preconditioner, precision, cycles = sys.argv
-        worker(element, int(r), int(steps), float(h), preconditioner, precision, int(cycles) or None)
+        _, _, element, r, steps, h, preconditioner, precision, cycles, chord, counts_only = sys.argv
+        worker(element, int(r), int(steps), float(h), preconditioner, precision, int(cycles) or None,
+               None if int(chord) < 0 else int(chord), bool(int(counts_only)))
         return
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="hex8 refinement 1 and 2 only")
@@ -168,6 +181,11 @@ def main(argv=None):
                    help="arithmetic of the multigrid's cycles (GMRES(multigrid_precision=))")
     p.add_argument("--cycles", type=int, default=None,
                    help="W-cycles per application of the multigrid preconditioner (default: _amg.CYCLES)")
+    p.add_argument("--chord", type=int, default=None,
+                   help="chord iterations per step (default: NewtonKrylov's; 0: Newton–Krylov iterations only, "
+                        "which measures the Krylov iterations per Newton iteration at every refinement)")
+    p.add_argument("--counts-only", action="store_true",
+                   help="run each case once (compile included) for its iteration counts and memory, no step times")
     p.add_argument("--append", action="store_true", help="keep the rows of other elements already in the file")
     p.add_argument("--memory-fraction", type=float, default=0.5,
                    help="skip a case whose peak RSS, extrapolated from the smaller ones, exceeds this fraction "
@@ -180,7 +198,8 @@ def main(argv=None):
     rows = []
     data = dict(machine=machine(), settings=dict(
         integrator="eG(1)", h=0.1, steps=steps, solver=f"NewtonKrylov(linear_solver=GMRES(preconditioner={a.preconditioner!r}, "
-                                      f"multigrid_precision={a.multigrid_precision!r}))", mass="consistent",
+                                      f"multigrid_precision={a.multigrid_precision!r})"
+                                      + ("" if a.chord is None else f", chord={a.chord}") + ")", mass="consistent",
         per_case_timeout_s=timeout, max_dofs=a.max_dofs, quick=a.quick,
         peak_memory="ru_maxrss of the subprocess that ran the case (RSS high-water mark)"), rows=rows)
     if a.append and (RESULTS / f"{a.out}.json").exists():
@@ -201,12 +220,13 @@ def main(argv=None):
                 rows.append(dict(element=el, refinement=r, dofs=dofs, status=msg))
                 print(f"{el} r{r}: {msg}", flush=True)
                 break
-            res = run_case(el, r, steps, 0.1, timeout, a.preconditioner, a.multigrid_precision, a.cycles)
+            res = run_case(el, r, steps, 0.1, timeout, a.preconditioner, a.multigrid_precision, a.cycles, a.chord,
+                           a.counts_only)
             res.setdefault("dofs", dofs)
             rows.append(res)
             print(json.dumps(res), flush=True)
             write_json(f"{a.out}.json", data)
-            if "ms_per_step" not in res:
+            if "newton_per_step" not in res:
                 print(f"{el} r{r}: {res['status']}; larger refinements skipped", flush=True)
                 break
     for el in dict.fromkeys(r["element"] for r in rows):
@@ -215,8 +235,13 @@ def main(argv=None):
         data.setdefault("slope_compile_vs_dofs", {})[el] = slope(rs, "compile_s")
         data.setdefault("dof_range", {})[el] = [min((r["dofs"] for r in rs), default=None),
                                                 max((r["dofs"] for r in rs), default=None)]
+        kn = [r["krylov_per_newton"] for r in sorted(rows, key=lambda r: r["dofs"])
+              if r["element"] == el and r.get("newton_per_step")]
+        # #19's target: Krylov iterations per Newton iteration, largest refinement over smallest
+        data.setdefault("krylov_per_newton_growth", {})[el] = kn[-1] / kn[0] if len(kn) > 1 else None
     write_json(f"{a.out}.json", data)
-    plot([r for r in rows if "ms_per_step" in r], RESULTS / f"{a.out}.png")
+    if any("ms_per_step" in r for r in rows):
+        plot([r for r in rows if "ms_per_step" in r], RESULTS / f"{a.out}.png")
 
 
 def _rss_estimate(rows, dofs):
