@@ -33,6 +33,7 @@ import io
 import os
 import pickle
 import sys
+import threading
 import types
 
 import equinox as eqx
@@ -42,7 +43,7 @@ _FORMAT = 1
 _SAFE_MODULES = ("jaxvisco", "equinox", "jax", "jaxlib", "numpy", "builtins", "math", "operator", "functools",
                  "collections", "typing", "enum", "dataclasses", "abc", "copyreg")
 _LU_TARGETS = ("jaxvisco_lu_factor", "jaxvisco_lu_solve")
-_recorder = None  # list of (builder name, args) while a program is being exported
+_recorder = threading.local()  # .patterns: list of (builder name, args) while this thread exports a program
 _memory = {}  # key -> loaded entry, or None for an uncacheable program (this process)
 stats = {"exported": 0, "loaded": 0, "uncacheable": 0}  # counts in this process (tests read them)
 
@@ -78,8 +79,9 @@ def register_check(check):
 
 def record_pattern(name, args):
     """Called by the builders of host factorization patterns (`_tangent.position_pattern`)."""
-    if _recorder is not None:
-        _recorder.append((name, args))
+    patterns = getattr(_recorder, "patterns", None)
+    if patterns is not None:
+        patterns.append((name, args))
 
 
 def _builders():
@@ -199,8 +201,6 @@ def _load(path):
 def _export(fn, name, leaves, in_def, static, options):
     """Trace `fn` once through `jax.export`: the entry (serialized program, the host
     patterns it names, the static part and structure of its output)."""
-    global _recorder
-
     out_static = {}
 
     def flat(*xs):
@@ -212,12 +212,13 @@ def _export(fn, name, leaves, in_def, static, options):
         return jax.tree_util.tree_leaves(dyn)
 
     checks = [jax.export.DisabledSafetyCheck.custom_call(t) for t in _LU_TARGETS]
-    _recorder, prev = [], _recorder
+    prev = getattr(_recorder, "patterns", None)
+    _recorder.patterns = []
     try:
         exp = jax.export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
-        patterns = list(_recorder)
+        patterns = list(_recorder.patterns)
     finally:
-        _recorder = prev
+        _recorder.patterns = prev
     builders = _builders()
     hosts = [builders[b](*a) for b, a in patterns]
     entry = dict(format=_FORMAT, name=name, hlo=bytes(exp.serialize()), patterns=patterns,

@@ -152,3 +152,26 @@ def test_missing_mesh_subprocess(tmp_path):
 def test_bad_plot_file(tmp_path, capsys):
     assert main(["plot", str(tmp_path / "none.h5")]) == 2
     assert "none.h5" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(600)
+def test_paper_runs_its_integrators_in_threads(tmp_path, capsys):
+    """`jaxvisco paper` runs cG(1) and eG(1) in two threads (their compiles and runs
+    overlap): every results file is complete, and each run equals the same run alone."""
+    import jaxvisco as jv
+    from jaxvisco.cli import _paper
+
+    assert _paper.PARALLEL
+    out = tmp_path / "p"
+    assert main(["paper", "--quick", "--t-end", "0.5", "--out", str(out), "--quiet"]) == 0
+    assert sorted(f for f in os.listdir(out) if f.endswith(".h5")) == ["cG1_large.h5", "cG1_schedule.h5",
+                                                                      "eG1_large.h5", "eG1_schedule.h5"]
+    assert (out / "energy.png").exists()
+    scene = jv.scenes.lshape(dim=2, refinement=1)
+    for name, integrator in (("cG1", jv.cG(1)), ("eG1", jv.eG(1))):
+        r = jv.read_results(out / f"{name}_schedule.h5")
+        assert r["attrs"]["status"] == "done" and np.allclose(r["t"], np.arange(6) * 0.1)
+        alone = jv.simulate(scene, integrator, t1=0.5, dt0=0.1)
+        x = np.asarray(alone.x)
+        np.testing.assert_allclose(r["x"], x, rtol=0, atol=1e-9 * np.abs(x).max())
+        np.testing.assert_allclose(r["energy"], np.asarray(alone.energy), rtol=1e-9)

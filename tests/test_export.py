@@ -83,3 +83,20 @@ def test_damaged_entry_is_written_again(tmp_path):
     finally:
         jax.config.update("jax_compilation_cache_dir", prev)
         _export.clear()
+
+
+def test_pattern_recorder_is_per_thread():
+    """The host patterns a program names are recorded per thread, so two threads that
+    trace at once (`jaxvisco paper` runs its integrators in two) each store their own."""
+    import threading
+
+    mine = _export._recorder.patterns = []
+    try:
+        other = threading.Thread(target=lambda: _export.record_pattern("position_pattern", ("other",)))
+        other.start()
+        other.join()
+        assert mine == []
+        _export.record_pattern("position_pattern", ("mine",))
+        assert mine == [("position_pattern", ("mine",))]
+    finally:
+        _export._recorder.patterns = None

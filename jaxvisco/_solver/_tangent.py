@@ -15,6 +15,7 @@ formed; away from it, it is the preconditioner of the Krylov solver.
 """
 
 import functools
+import threading
 
 import equinox as eqx
 import jax
@@ -33,7 +34,11 @@ def position_pattern(cells, k, n_nodes, dim, fixed=None):
     """Host factorization object for the (k n d)^2 position block of a mesh (element
     blocks, then one diagonal entry per held component and time node)."""
     record_pattern("position_pattern", (cells, k, n_nodes, dim, fixed))
-    return _position_pattern(cells, k, n_nodes, dim, fixed)
+    with _PATTERN_LOCK:  # one HostLU per pattern also when threads trace at once (it owns the key's store)
+        return _position_pattern(cells, k, n_nodes, dim, fixed)
+
+
+_PATTERN_LOCK = threading.Lock()
 
 
 register_pattern("position_pattern", position_pattern)
