@@ -28,7 +28,7 @@ cycles whose every operation is array arithmetic in the compiled program:
 - **Precision**: `build` forms the operators in the tangent's float64 and stores them in
   float32 by default (`GMRES.multigrid_precision`); the cycles then run in float32 and
   `solve` returns float64. A block solve has to reduce the residual 50-fold (chord) or
-  by four cycles' worth (GMRES), far above float32 rounding, and the cycles are bound by
+  by `CYCLES` cycles' worth (GMRES), far above float32 rounding, and the cycles are bound by
   memory traffic, which halves: see `GMRES` for the measurements.
 
 Held components are decoupled rows of the block (a scaled identity), so their modes are
@@ -54,13 +54,22 @@ from .._fem._tensor import small_inv
 
 # Largest coarsest matrix (unknowns) solved by a dense LU.
 MAX_COARSE = 1500
-# Cycles per application of the preconditioner (`solve`; measured as V-cycles). A Krylov vector costs a JVP
-# of the step residual (3D L-shape hex8 r4, eG(1): 238 ms) and a V-cycle 22 ms, so a
-# closer block solve pays: ms/step (Krylov vectors/step) 1 cycle 3297 (15.7), 4 cycles
-# 1284 (2.0), 8 cycles 1475 (1.5); the host LU path 2067 (same runs, 3-4 steps, h = 0.1).
-# With the row-padded operators (V-cycle 16-18 ms there) degree/cycles 3/4 2105, 4/3 1942,
-# 4/4 2236, 2/4 2540 ms/step (5 steps): the first three within the machine's noise.
-CYCLES = 4
+# Cycles per application of the preconditioner inside GMRES (`solve` without `rtol`): a
+# Krylov vector costs a JVP of the step residual (3D L-shape hex8 r9, eG(1): 1.64 s,
+# 2.7 residuals on this memory-first path) and a W-cycle 0.135 s, so a closer block solve
+# pays. Krylov vectors per Newton iteration, hex8, eG(1), h = 0.1, `chord=0`, 3 steps
+# (`benchmarks/results/scaling_chord0_s28.json`, `..._cycles6_s28.json`):
+#   refinement        2     5     8     11    14 (1e6 unknowns)
+#   4 cycles        2.67  3.11  3.78  3.89  4.11   (1.54x from r2 to r14)
+#   6 cycles        2.22  2.22  2.56  2.60  2.64   (1.19x)
+# Newton iterations per step 3 everywhere with 4 cycles, 3-3.67 with 6; Krylov vectors per
+# step at r14 12.3 -> 9.7; the first call there (compile and 3 steps; the 4 cycles then
+# unrolled, the 6 a loop) 630 -> 385 s. The fixed-step default steps end in chord
+# iterations, whose block solve cycles to `CHORD_RTOL` instead (`solve(rtol=)`), so this
+# count acts where Newton–Krylov iterations run: first steps that fail to contract, large
+# or adaptive steps, the implicit derivative's solves. Earlier, with V-cycles (hex8 r4):
+# 1 cycle 3297 ms/step (15.7 Krylov vectors/step), 4 cycles 1284 (2.0), 8 cycles 1475 (1.5).
+CYCLES = 6
 # The chord iterations' block solve (`_newton._chord`: no Krylov method around it, so it
 # need not be a fixed linear map) cycles until the block residual fell by this factor,
 # at most `MAX_CYCLES` times. A chord iteration contracts no better than its block
@@ -589,9 +598,11 @@ def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
 
 def _cycles(hier: Hierarchy, mg: Multigrid, rhs, n, level=0):
     """`n` cycles of x <- x + C(rhs - A x) at `level` from x = 0: a fixed linear map of
-    `rhs`. Unrolled: as one `fori_loop` the 3D hex8 r4 solve (four cycles) measured 8 %
-    slower (236 vs 216 ms median; no fusion across iterations, one unused residual) for
-    a compile 1-2 s shorter of 22-24 s (r3), within that noise."""
+    `rhs`, unrolled (the coarse corrections of `cycle`: n = `GAMMA` or 1). `solve`'s
+    `CYCLES` at the finest level are a loop instead: unrolled, every cycle is another copy
+    of the whole W-cycle in the compiled program, and as a loop the 3D hex8 r4 block solve
+    (four cycles) measured 8 % slower (236 vs 216 ms median), which only Newton–Krylov
+    iterations pay now that the chord iterations cycle to a tolerance."""
     x = cycle(hier, mg, rhs, level)
     for _ in range(n - 1):
         x = x + cycle(hier, mg, rhs - matvec(hier, mg, x, level), level)
@@ -609,8 +620,11 @@ def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None, rtol=None):
     that of `rhs`."""
     out = rhs.dtype
     rhs = rhs.astype(mg.A[0].dtype)
-    if rtol is None:
-        return _cycles(hier, mg, rhs, CYCLES if cycles is None else cycles).astype(out)
+    if rtol is None:  # the first cycle, then a loop of the others (traced once; a scan, so transposable)
+        x = cycle(hier, mg, rhs)
+        x = jax.lax.fori_loop(0, (CYCLES if cycles is None else cycles) - 1,
+                              lambda _, x: x + cycle(hier, mg, rhs - matvec(hier, mg, x)), x)
+        return x.astype(out)
     bound = rtol * jnp.linalg.norm(rhs)
 
     def body(c):

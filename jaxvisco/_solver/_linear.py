@@ -26,8 +26,8 @@ AUTO_AMG_UNKNOWNS = 20_000
 # GMRES's basis on the multigrid path (`GMRES.restart` None): at most this many vectors
 # before a restart. The basis holds every unknown (Γ included: 93 % of them on the 3D
 # L-shape); with 61 rows it was 188 MB of the 782 MB of XLA buffers of the hex8 r4 run
-# and the largest array at the peak (4 cycles keep Krylov vectors per Newton iteration
-# at 2-3 there, so the restart rarely triggers). With 20 (21 rows) the basis set the peak
+# and the largest array at the peak (the preconditioner's cycles keep Krylov vectors per
+# Newton iteration at 2-3 there, so the restart rarely triggers). With 20 (21 rows) the basis set the peak
 # of XLA's buffers at hex8 r8 (196 875 unknowns, 3.07 million with Γ): temporary buffers
 # of the compiled loop 1963 MB, with 10 1729 MB (`benchmarks/loop_memory.py`); the runs
 # there take 2-5 Krylov vectors per Newton iteration.
@@ -79,7 +79,7 @@ class GMRES(AbstractLinearSolver):
       so it costs more Krylov vectors).
     - `preconditioner`: how the preconditioner solves the condensed position block:
       ``"lu"`` (a sparse LU on the host, exact where the tangent was formed), ``"amg"``
-      (four W-cycles of smoothed-aggregation multigrid in JAX, `_amg`: no fill, no host
+      (`_amg.CYCLES` = 6 W-cycles of smoothed-aggregation multigrid in JAX: no fill, no host
       call, time and memory that grow about linearly with the mesh) or ``"auto"`` (the
       default: the multigrid for 3D meshes with at least `AUTO_AMG_UNKNOWNS` = 20 000
       position unknowns, where it measured faster, the LU otherwise).
@@ -91,7 +91,7 @@ class GMRES(AbstractLinearSolver):
       the multigrid's operators and cycles (``"amg"``). Only the preconditioner runs in
       float32: the residuals, Krylov vectors, Newton and chord updates stay float64, and
       the step converges to the same float64 tolerance. A block solve needs to reduce
-      the block residual by `_amg.CHORD_RTOL` = 0.02 per chord iteration (or four cycles'
+      the block residual by `_amg.CHORD_RTOL` = 0.02 per chord iteration (or six cycles'
       worth inside GMRES), far above float32 rounding; the cycles' memory traffic halves.
       Measured (3D L-shape hex8, eG(1), h = 0.1, one W-cycle, median of 7): r4 17.1 ->
       10.6 ms, r6 70.5 -> 34.0 ms, r8 166 -> 96 ms; residual reduction per cycle equal to
