@@ -256,7 +256,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         # one place its loop forms one: the step then starts with chord iterations, as a
         # step with a fitting tangent does, and Newton–Krylov keeps that tangent (a
         # refresh it asks for marks the tangent stale for the next step instead). There a
-        # Krylov vector (a JVP, 2.7 residuals, and then four W-cycles: 2.2 s at hex8 r9) costs
+        # Krylov vector (a JVP, 2.7 residuals, and four W-cycles when measured: 2.2 s at hex8 r9) costs
         # more than a chord iteration (a residual and cycles to a 50-fold reduction:
         # 1.4 s); the first step used to take 3 Newton iterations with 10 Krylov vectors
         # (hex8 r8: first step 33.2 -> 21.6-26.4 s, none left); and one copy of the
