@@ -161,7 +161,8 @@ def plot(rows, path):
 
 def main(argv=None):
     if argv is None and len(sys.argv) > 1 and sys.argv[1] == "--worker":
-        _, _, element, r, steps, h, preconditioner, precision, cycles, chord, counts_only = sys.argv
+        element, r, steps, h, preconditioner, precision, cycles, *rest = sys.argv[2:]
+        chord, counts_only = (rest + ["-1", "0"][len(rest):])[:2]  # optional: default chord, timed
         worker(element, int(r), int(steps), float(h), preconditioner, precision, int(cycles) or None,
                None if int(chord) < 0 else int(chord), bool(int(counts_only)))
         return
