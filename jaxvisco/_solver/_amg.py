@@ -596,16 +596,21 @@ def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
     return _chebyshev(lv, A, Dinv, rho, rhs, x)
 
 
-def _cycles(hier: Hierarchy, mg: Multigrid, rhs, n, level=0):
+def _cycles(hier: Hierarchy, mg: Multigrid, rhs, n, level=0, loop=False):
     """`n` cycles of x <- x + C(rhs - A x) at `level` from x = 0: a fixed linear map of
-    `rhs`, unrolled (the coarse corrections of `cycle`: n = `GAMMA` or 1). `solve`'s
-    `CYCLES` at the finest level are a loop instead: unrolled, every cycle is another copy
-    of the whole W-cycle in the compiled program, and as a loop the 3D hex8 r4 block solve
-    (four cycles) measured 8 % slower (236 vs 216 ms median), which only Newton–Krylov
-    iterations pay now that the chord iterations cycle to a tolerance."""
+    `rhs`. Unrolled (the coarse corrections of `cycle`: n = `GAMMA` or 1), or with `loop`
+    (`solve`'s `CYCLES` at the finest level) the first cycle and then a `fori_loop` of
+    the others: traced once, and with static bounds a scan, so still transposable.
+    Unrolled, every cycle is another copy of the whole W-cycle in the compiled program;
+    as a loop the 3D hex8 r4 block solve (four cycles) measured 8 % slower (236 vs 216 ms
+    median), which only Newton–Krylov iterations pay now that the chord iterations cycle
+    to a tolerance."""
     x = cycle(hier, mg, rhs, level)
-    for _ in range(n - 1):
-        x = x + cycle(hier, mg, rhs - matvec(hier, mg, x, level), level)
+    more = lambda _, x: x + cycle(hier, mg, rhs - matvec(hier, mg, x, level), level)  # noqa: E731
+    if loop:
+        return jax.lax.fori_loop(0, n - 1, more, x)
+    for i in range(n - 1):
+        x = more(i, x)
     return x
 
 
@@ -620,11 +625,8 @@ def solve(hier: Hierarchy, mg: Multigrid, rhs, cycles=None, rtol=None):
     that of `rhs`."""
     out = rhs.dtype
     rhs = rhs.astype(mg.A[0].dtype)
-    if rtol is None:  # the first cycle, then a loop of the others (traced once; a scan, so transposable)
-        x = cycle(hier, mg, rhs)
-        x = jax.lax.fori_loop(0, (CYCLES if cycles is None else cycles) - 1,
-                              lambda _, x: x + cycle(hier, mg, rhs - matvec(hier, mg, x)), x)
-        return x.astype(out)
+    if rtol is None:
+        return _cycles(hier, mg, rhs, CYCLES if cycles is None else cycles, loop=True).astype(out)
     bound = rtol * jnp.linalg.norm(rhs)
 
     def body(c):

@@ -28,9 +28,9 @@ AUTO_AMG_UNKNOWNS = 20_000
 # L-shape); with 61 rows it was 188 MB of the 782 MB of XLA buffers of the hex8 r4 run
 # and the largest array at the peak (the preconditioner's cycles keep Krylov vectors per
 # Newton iteration at 2-3 there, so the restart rarely triggers). With 20 (21 rows) the
-# basis set the peak of XLA's buffers at hex8 r8 (196 875 unknowns, 3.07 million with Γ): temporary buffers
-# of the compiled loop 1963 MB, with 10 1729 MB (`benchmarks/loop_memory.py`); the runs
-# there take 2-5 Krylov vectors per Newton iteration.
+# basis set the peak of XLA's buffers at hex8 r8 (196 875 unknowns, 3.07 million with Γ):
+# temporary buffers of the compiled loop 1963 MB, with 10 1729 MB
+# (`benchmarks/loop_memory.py`); the runs there take 2-5 Krylov vectors per Newton iteration.
 AMG_RESTART = 10
 
 

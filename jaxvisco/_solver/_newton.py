@@ -252,17 +252,16 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     chord_state = None
     form_at_start = lin.memory_first(scene) and not direct
     if form_at_start:
-        # The multigrid path (large 3D meshes) forms a stale tangent at the predictor, the
-        # one place its loop forms one: the step then starts with chord iterations, as a
-        # step with a fitting tangent does, and Newton–Krylov keeps that tangent (a
-        # refresh it asks for marks the tangent stale for the next step instead). There a
-        # Krylov vector (a JVP, 2.7 residuals, and four W-cycles when measured: 2.2 s at hex8 r9) costs
-        # more than a chord iteration (a residual and cycles to a 50-fold reduction:
-        # 1.4 s); the first step used to take 3 Newton iterations with 10 Krylov vectors
-        # (hex8 r8: first step 33.2 -> 21.6-26.4 s, none left); and one copy of the
-        # formation in the compiled loop instead of two compiles faster (hex8 r8: 83 s
-        # with both copies, 58-59 s with this one). The LU path (small meshes) keeps
-        # Newton's refresh.
+        # The multigrid path (large 3D meshes) forms a stale tangent at the predictor, the one
+        # place its loop forms one: the step then starts with chord iterations, as a step with
+        # a fitting tangent does, and Newton–Krylov keeps that tangent (a refresh it asks for
+        # marks the tangent stale for the next step instead). There a Krylov vector (a JVP,
+        # 2.7 residuals, and four W-cycles when measured: 2.2 s at hex8 r9) costs more than a
+        # chord iteration (a residual and cycles to a 50-fold reduction: 1.4 s); the first
+        # step used to take 3 Newton iterations with 10 Krylov vectors (hex8 r8: first step
+        # 33.2 -> 21.6-26.4 s, none left); and one copy of the formation in the compiled loop
+        # instead of two compiles faster (hex8 r8: 83 s with both copies, 58-59 s with this
+        # one). The LU path (small meshes) keeps Newton's refresh.
         tangent = jax.lax.cond(stale, lambda: form(U0), lambda: tangent)
         stale = jnp.asarray(False)
     if solver.chord and not direct:

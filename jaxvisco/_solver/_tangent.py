@@ -30,15 +30,15 @@ from . import _amg
 from ._sparse import RETAIN, HostLU, lu_factor, lu_solve
 
 
+_PATTERN_LOCK = threading.Lock()
+
+
 def position_pattern(cells, k, n_nodes, dim, fixed=None):
     """Host factorization object for the (k n d)^2 position block of a mesh (element
     blocks, then one diagonal entry per held component and time node)."""
     record_pattern("position_pattern", (cells, k, n_nodes, dim, fixed))
     with _PATTERN_LOCK:  # one HostLU per pattern also when threads trace at once (it owns the key's store)
         return _position_pattern(cells, k, n_nodes, dim, fixed)
-
-
-_PATTERN_LOCK = threading.Lock()
 
 
 register_pattern("position_pattern", position_pattern)
