@@ -90,6 +90,37 @@ def test_cycle_contracts_independently_of_refinement(monkeypatch):
 
 
 @pytest.mark.timeout(300)
+def test_a_large_coarse_level_takes_one_cycle_more(monkeypatch):
+    """A coarse level of more than `_amg.LARGE_LEVEL` nodes gets `GAMMA` + 1 cycles per
+    coarse correction, as a loop: the same map as those cycles unrolled, contracting faster
+    than with `GAMMA` (here barely: 0.3883 -> 0.3879, level 1 has 81 nodes; see `_amg.GAMMA`
+    for large levels), and the preconditioner stays a fixed linear map that
+    `jax.linear_transpose` transposes (GMRES and the implicit derivative need both)."""
+    monkeypatch.setattr(_amg, "MAX_COARSE", 60)
+    scene = _scene(3, 2)
+    hier, mg = _multigrid(scene, jv.eG(1))
+    assert len(hier.levels) >= 3
+    rates = {}
+    for large in (10**9, 0):
+        monkeypatch.setattr(_amg, "LARGE_LEVEL", large)
+        rates[large] = _cycle_rate(scene, jv.eG(1), built=(hier, mg))[0]
+    assert rates[0] < rates[10**9], rates
+    x, y = jax.random.normal(jax.random.PRNGKey(2), (2, scene.disc.n_nodes, scene.dim))
+    looped = jax.jit(lambda r: _amg.cycle(hier, mg, r))(x)  # LARGE_LEVEL = 0: GAMMA + 1 cycles as a loop
+    monkeypatch.setattr(_amg, "LARGE_LEVEL", 10**9)
+    monkeypatch.setattr(_amg, "GAMMA", _amg.GAMMA + 1)
+    unrolled = jax.jit(lambda r: _amg.cycle(hier, mg, r))(x)
+    np.testing.assert_allclose(np.asarray(looped), np.asarray(unrolled), rtol=0, atol=1e-12 * float(jnp.abs(unrolled).max()))
+    monkeypatch.setattr(_amg, "GAMMA", _amg.GAMMA - 1)
+    monkeypatch.setattr(_amg, "LARGE_LEVEL", 0)
+    S = jax.jit(lambda r: _amg.solve(hier, mg, r))
+    np.testing.assert_allclose(np.asarray(S(x + 2.0 * y)), np.asarray(S(x) + 2.0 * S(y)), rtol=0,
+                               atol=1e-12 * float(jnp.abs(S(x)).max()))
+    (St_y,) = jax.jit(jax.linear_transpose(lambda r: _amg.solve(hier, mg, r), x))(y)
+    np.testing.assert_allclose(float(jnp.vdot(St_y, x)), float(jnp.vdot(y, S(x))), rtol=1e-10)
+
+
+@pytest.mark.timeout(300)
 def test_block_solve_to_a_tolerance(monkeypatch):
     """`_amg.solve(rtol=)` (the chord iterations' block solve) takes the fewest cycles
     that reach the tolerance: it equals the fixed solve with that many cycles, whose one

@@ -91,7 +91,18 @@ DEGREE = 3
 # two-grid rate with a (near) exact level-1 solve stayed at 0.398 / 0.402 (r4 / r6): the
 # inexact coarse solve was what degraded. W-cycles: 0.394 / 0.401 / 0.419 / 0.574; level 1
 # is 20-30x smaller than level 0 (aggregates of 27 nodes), so it costs little more.
+# A coarse level of more than `LARGE_LEVEL` nodes gets one cycle more: the W-cycle rate
+# grew once level 1 was large. Float32 cycles, random right-hand side, standalone (same
+# process), rate / ms per cycle with level 0 taking 2, 3 or 4 cycles of level 1:
+#   hex8 r5 (3 levels, level 1: 792 nodes)     2: 0.437 / 80    3: 0.427 / 79
+#   hex8 r8 (3 levels, 2 835 nodes)            2: 0.574 / 275   3: 0.467 / 294
+#   hex8 r11 (4 levels, 6 912 nodes)           2: 0.601 / 518   3: 0.483 / 614   4: 0.431 / 750
+# (more smoothing instead, degree 6 on the coarse levels: r8 0.458 / 339, r11 0.481 / 678).
+# In the time loop (eG(1), h = 0.1, 3 steps, alternating runs) the chord iterations' block
+# solves took 7.4 cycles on average at r8 with 2 and 5.8 with 3 (solve time -25 %,
+# s/step 8.59 -> 7.58); at r5 3 cycles took as many (5.1) and cost 20 % more per solve.
 GAMMA = 2
+LARGE_LEVEL = 2000
 # Jacobi sweeps on A B = 0 that adapt the rigid modes to the block before aggregation
 # (the mass term lifts them): rates 0.57 -> 0.47 (2D r4), 0.52 -> 0.44 (3D r3) with 4.
 IMPROVE = 4
@@ -582,8 +593,9 @@ def _chebyshev(lv, A, Dinv, rho, rhs, x):
 def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
     """One multigrid cycle for A x = rhs, from x = 0; `rhs` (n, b) at the level's nodes:
     Chebyshev–Jacobi smoothing before and after the coarse correction, which takes
-    `GAMMA` cycles of the next level (one where that level is the coarsest: its LU is
-    exact). A fixed linear map of `rhs`."""
+    `GAMMA` cycles of the next level (one more where it has more than `LARGE_LEVEL`
+    nodes, as a loop; one where it is the coarsest: its LU is exact). A fixed linear map
+    of `rhs`."""
     lv = hier.levels[level]
     if level == len(hier.levels) - 1:
         sol = jax.scipy.linalg.lu_solve((mg.lu, mg.piv), rhs.reshape(-1))
@@ -591,7 +603,9 @@ def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
     A, Dinv, rho = mg.A[level], mg.Dinv[level], mg.rho[level]
     x = _chebyshev(lv, A, Dinv, rho, rhs, None)
     rc = _restrict(mg.R[level], lv.ix("r_ell_rows"), rhs - _ell_apply(A, lv.ix("ell_cols"), x))
-    xc = _cycles(hier, mg, rc, GAMMA if level + 2 < len(hier.levels) else 1, level + 1)
+    nxt = hier.levels[level + 1]
+    gamma = 1 if level + 2 == len(hier.levels) else GAMMA + int(nxt.n > LARGE_LEVEL)
+    xc = _cycles(hier, mg, rc, gamma, level + 1, loop=gamma > 2)
     x = x + _ell_apply(mg.P[level], lv.ix("p_ell_cols"), xc)
     return _chebyshev(lv, A, Dinv, rho, rhs, x)
 
@@ -599,8 +613,9 @@ def cycle(hier: Hierarchy, mg: Multigrid, rhs, level=0):
 def _cycles(hier: Hierarchy, mg: Multigrid, rhs, n, level=0, loop=False):
     """`n` cycles of x <- x + C(rhs - A x) at `level` from x = 0: a fixed linear map of
     `rhs`. Unrolled (the coarse corrections of `cycle`: n = `GAMMA` or 1), or with `loop`
-    (`solve`'s `CYCLES` at the finest level) the first cycle and then a `fori_loop` of
-    the others: traced once, and with static bounds a scan, so still transposable.
+    (`solve`'s `CYCLES` at the finest level, a large level's `GAMMA` + 1) the first cycle
+    and then a `fori_loop` of the others: traced once, and with static bounds a scan, so
+    still transposable.
     Unrolled, every cycle is another copy of the whole W-cycle in the compiled program;
     as a loop the 3D hex8 r4 block solve (four cycles) measured 8 % slower (236 vs 216 ms
     median), which only Newton–Krylov iterations pay now that the chord iterations cycle
