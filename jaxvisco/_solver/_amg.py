@@ -100,7 +100,9 @@ DEGREE = 3
 # (more smoothing instead, degree 6 on the coarse levels: r8 0.458 / 339, r11 0.481 / 678).
 # In the time loop (eG(1), h = 0.1, 3 steps, alternating runs) the chord iterations' block
 # solves took 7.4 cycles on average at r8 with 2 and 5.8 with 3 (solve time -25 %,
-# s/step 8.59 -> 7.58); at r5 3 cycles took as many (5.1) and cost 20 % more per solve.
+# s/step 8.59 -> 7.58; as a loop 7.23, first call 63 -> 54 s); at r5 3 cycles took as many
+# (5.1) and cost 20 % more per solve. Log-log slope from 12 000 to 1e6 unknowns of the
+# steps that reuse the tangent 1.14 -> 1.10 (medians, `benchmarks/results/scaling_cpu_r14_s29.json`).
 GAMMA = 2
 LARGE_LEVEL = 2000
 # Jacobi sweeps on A B = 0 that adapt the rigid modes to the block before aggregation
