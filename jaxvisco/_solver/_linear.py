@@ -21,7 +21,14 @@ _PRECISIONS = {"single": np.float32, "double": np.float64}
 # the LU's fill grows faster beyond (benchmarks/results/scaling_amg_s18.json). With the
 # float32 cycles, 12 000 unknowns, alternating pairs: 517 / 455 against 543 / 550 ms/step,
 # but 15-17 s of compilation against 11-13 s and 920 against 1300 MB: the faster steps
-# repay the compile only after ~75 steps, so the switch stays here.
+# repay the compile only after ~75 steps, so the switch stays here. Again after the chord
+# iterations (session 29, quiet, alternating pairs, 5 steps; ms for the first step, which
+# forms the tangent, and for the later ones, which reuse it; LU / multigrid):
+#   3 969 unknowns   first 414 396 / 286 279   later 44 39 / 82 76      compile 11 / 15 s
+#   12 000           first 1819 1667 / 842 878  later 196 174 / 269 240   compile 11 / 14 s
+#   26 871           first 5147 5143 / 2161 1808  later 477 617 / 449 512  compile 11 / 20 s
+# Below the switch the LU's steps that reuse its factorization are faster; above it the
+# multigrid wins both (benchmarks/results/switch_s29.json).
 AUTO_AMG_UNKNOWNS = 20_000
 # GMRES's basis on the multigrid path (`GMRES.restart` None): at most this many vectors
 # before a restart. The basis holds every unknown (Γ included: 93 % of them on the 3D
