@@ -114,7 +114,7 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol):
     sqrt(eps)), the strain that Γ relaxes towards. Measured against ``|Γ| ≈ 1`` (as
     before), a tolerance on Γ left the viscous strain of the paper's L-shape (|Γ - I| ≈
     3e-4) uncontrolled: the dissipated energy at t = 2 was off by 230-800 times rtol = atol
-    (eG(1)), 34-46 times with this scale
+    (eG(1)), 23-27 times with this scale
     (`benchmarks/adaptive_proportionality.py`)."""
     e_x, e_g = defects(scheme, scene, ctx, U)
     x = new.x - jnp.mean(new.x, axis=0)
