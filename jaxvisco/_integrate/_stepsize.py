@@ -56,11 +56,10 @@ class PIDController(AbstractStepSizeController):
     measurement (paper's 2D L-shape to t = 10, eG(1..3), rtol = atol = 1e-3 and 1e-5,
     medians of 3 alternating runs; `benchmarks/controller_coefficients.py`): with (0.2,
     0.4) every run took 0.68-0.85 times the wall time of (0, 1) (two sessions of rounds)
-    and was more accurate
-    (position error 1.4-3.3 times, dissipated energy 1.5-6.9 times smaller), rejected 0-8
-    steps instead of 2-46 and reused the tangent more (fewer Newton iterations), in
-    1.3-1.8 times as many steps; (0.3, 0.3) was slower in five of six cases (by up to
-    24 %), faster in one (3 %).
+    and was more accurate (position error 1.4-3.3 times, dissipated energy 1.5-6.9 times
+    smaller), rejected 0-8 steps instead of 2-46 and reused the tangent more (fewer
+    Newton iterations), in 1.3-1.8 times as many steps; (0.3, 0.3) was slower in five of
+    six cases (by up to 24 %), faster in one (3 %).
 
     Step sizes are constants of the derivative: `jax.grad` of an adaptive run
     differentiates the run along its accepted steps (see `simulate`).
