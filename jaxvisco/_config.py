@@ -49,7 +49,7 @@ def enable_compilation_cache(path=None):
     """Keep the time loops on disk, so that a new process neither traces nor compiles
     them again: JAX's persistent compilation cache holds the compiled programs, and
     ``jaxvisco-export/`` inside it the traced ones (`jax.export`, see `_export`). The
-    paper's L-shape, eG(1): first `simulate` call 8.7 s in a fresh process, 0.9 s in
+    paper's L-shape, eG(1): first `simulate` call 7.8 s in a fresh process, 0.7 s in
     the next ones (2-core CPU, `benchmarks/startup.py`).
 
     `path`: the cache directory (default `default_cache_dir()`, which honours
