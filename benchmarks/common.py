@@ -81,10 +81,12 @@ def timed(fn, repeats=3, budget_s=None):
     return out, first, wall, times
 
 
-def write_json(name, data):
+def write_json(name, data, stamp_end=True):
+    """Write `data` to results/`name`; `stamp_end`: record the load average now as the
+    measurement's end (False for files derived from earlier measurements)."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     data = dict(data)
-    if "machine" in data:
+    if "machine" in data and stamp_end:
         data["machine"]["load_average_at_end"] = list(os.getloadavg())
     path = RESULTS / name
     path.write_text(json.dumps(data, indent=1, default=_default))

@@ -239,19 +239,40 @@ def diffrax_worker(name, refinement, T, tols, budget_s, repeats, ref_path, max_s
             break
 
 
-def interpolate_at(rows, target=TARGET):
-    """Wall time at `target` error, log–log interpolated between consecutive runs in the
-    order of their setting (decreasing step or tolerance), as the curves are drawn: at the
-    first pair whose errors bracket the target. (Ordering by the measured wall time instead
-    let a slower run at a looser tolerance bracket the target: scipy Radau on r2, where tol
-    1e-3 took longer than tol 1e-4.)"""
+def front(rows):
+    """The work–precision front of one method's runs: those that no other run beats in both
+    error and wall time, ordered by decreasing error. A dominated run is one a user would
+    never choose: eG(3) on r3 at h = 1 took 2.84 s for an error of 1.4e-4 (its steps fall
+    back to Newton–Krylov) where h = 0.4 took 1.55 s for 4.1e-5; scipy Radau on r2 and r3
+    took longer at rtol 1e-3 than at 1e-4."""
     ok = [r for r in rows if r.get("error") is not None and np.isfinite(r["error"]) and r["error"] > 0]
-    pts = [(r["wall_s"], r["error"]) for r in sorted(ok, key=lambda r: -r.get("h", r.get("rtol", 0.0)))]
+    keep = [r for r in ok if not any(o is not r and o["error"] <= r["error"] and o["wall_s"] <= r["wall_s"]
+                                     and (o["error"] < r["error"] or o["wall_s"] < r["wall_s"]) for o in ok)]
+    return sorted(keep, key=lambda r: -r["error"])
+
+
+def interpolate_at(rows, target=TARGET):
+    """Wall time at `target` error, log–log interpolated between the consecutive runs of
+    the work–precision `front` whose errors bracket it; None where the front does not reach
+    across the target (every run of the method more accurate, or every one less). Before
+    session 31 the curve was every run in the order of its setting, so that a dominated
+    run could bracket the target: the r3 summary read eG(3) at 1e-4 as 2.44 s, between
+    h = 1 (2.84 s) and h = 0.4 (1.55 s, error 4.1e-5)."""
+    pts = [(r["wall_s"], r["error"]) for r in front(rows)]
     for (w0, e0), (w1, e1) in zip(pts, pts[1:]):
         if (e0 - target) * (e1 - target) <= 0 and e0 != e1:
             s = (math.log(target) - math.log(e0)) / (math.log(e1) - math.log(e0))
             return math.exp(math.log(w0) + s * (math.log(w1) - math.log(w0)))
     return None
+
+
+def at_most(rows, target):
+    """Where every run of a method's front is more accurate than `target`: the wall time of
+    its cheapest run, an upper bound on the time the method needs for an error of at most
+    `target` (its curve does not reach up to the target, so nothing is interpolated).
+    None otherwise."""
+    f = front(rows)
+    return f[0]["wall_s"] if f and f[0]["error"] < target else None
 
 
 def compare(runs):
@@ -268,6 +289,10 @@ def _reach_note(rows, target):
     ok = [r["error"] for r in rows if r.get("error") is not None and np.isfinite(r["error"]) and r["error"] > 0]
     if not ok:
         return "no run finished: " + "; ".join(dict.fromkeys(str(r.get("status")) for r in rows))
+    f = [r["error"] for r in front(rows)]
+    if len(f) < len(ok):
+        return (f"its front's errors ({min(f):.2g} to {max(f):.2g}; {len(ok) - len(f)} slower and less accurate runs "
+                f"left out) do not bracket {target:g}")
     return f"its errors ({min(ok):.2g} to {max(ok):.2g}) do not bracket {target:g}"
 
 
@@ -294,8 +319,10 @@ def adaptive_summary(runs, targets=TARGETS):
         others["best fixed-step jaxvisco"] = fixed_any.get(best_any)
         ratio = {m: (w / wb if (w is not None and wb) else None) for m, w in others.items()}
         notes = {m: _reach_note(rows_of[m], target) for m in methods if at[m] is None}
+        bounds = {m: at_most(rows_of[m], target) for m in methods if at[m] is None}
         out[f"{target:g}"] = dict(best_adaptive_eG=best, wall_s=wb, best_fixed_eG=best_eg, best_fixed_jaxvisco=best_any,
-                                  ratio_to_best_adaptive=ratio, wall_at_error_s=at, no_value=notes)
+                                  ratio_to_best_adaptive=ratio, wall_at_error_s=at, no_value=notes,
+                                  wall_at_most_s={m: w for m, w in bounds.items() if w is not None})
     return out
 
 
@@ -307,7 +334,10 @@ def print_adaptive_summary(key, summ):
         which = {"best fixed-step eG": d["best_fixed_eG"], "best fixed-step jaxvisco": d["best_fixed_jaxvisco"]}
         parts = [(f"{m}" + (f" ({which[m]})" if which.get(m) else "") + (f" {r:.2f}x" if r is not None else " n/a"))
                  for m, r in d["ratio_to_best_adaptive"].items()]
-        print(head + "; " + ", ".join(parts), flush=True)
+        bounds = d.get("wall_at_most_s") or {}
+        tail = ("; every run more accurate than e, cheapest: " + ", ".join(f"{m} {w:.3g}s" for m, w in bounds.items())
+                if bounds else "")
+        print(head + "; " + ", ".join(parts) + tail, flush=True)
 
 
 def merge(names, out):
@@ -334,13 +364,19 @@ def merge(names, out):
                     f"the runs of a separate process ({name})")
             data["scenes"][key]["runs"] = kept + sc["runs"]
             data["scenes"][key].setdefault("other_references", []).append(sc["reference"])
+    _derive(data, out)
+
+
+def _derive(data, out):
+    """Recompute a results file's summaries (wall times at the target errors, ratios) from
+    its runs, and write it and its figure as results/`out`."""
     for key, sc in data["scenes"].items():
         sc["wall_at_target_s"], sc["best_jaxvisco"], sc["speedup_at_target"] = compare(sc["runs"])
         sc["adaptive_summary"] = adaptive_summary(sc["runs"])
         print(f"{key}: best jaxvisco {sc['best_jaxvisco']}, speedups {sc['speedup_at_target']}", flush=True)
         print_adaptive_summary(key, sc["adaptive_summary"])
     data["adaptive_summary"] = {k: sc["adaptive_summary"] for k, sc in data["scenes"].items()}
-    write_json(f"{out}.json", data)
+    write_json(f"{out}.json", data, stamp_end=False)
     plot(data, RESULTS / f"{out}.png")
 
 
@@ -415,6 +451,8 @@ def main(argv=None):
     p.add_argument("--merge", default=None,
                    help="comma list of results names to merge into --out (runs split over processes; a method "
                         "measured in a later file replaces its rows in earlier ones); no runs")
+    p.add_argument("--rederive", default=None, metavar="NAMES",
+                   help="comma list of results names whose summaries are recomputed from their runs (no runs)")
     p.add_argument("--replot", action="store_true", help="only redraw the PNG from the JSON")
     p.add_argument("--adaptive-only", action="store_true",
                    help="only the reference and the adaptive eG curves (no constant steps, no peers); merge the "
@@ -427,6 +465,8 @@ def main(argv=None):
                         "computing it: for runs split over processes")
     p.add_argument("--tols", default=None, help="comma list of rtol = atol for the adaptive eG and the peers "
                                                 "(default 1e-2,...,1e-7)")
+    p.add_argument("--hs", default=None, help="comma list of constant steps for every selected constant-step scheme "
+                                              "(default: each scheme's own grid)")
     p.add_argument("--repeats", type=int, default=None, help="timed calls after the first (default 3)")
     p.add_argument("--diffrax-timeout", type=float, default=None,
                    help="wall-clock limit of one diffrax solver's subprocess (default 4 x budget)")
@@ -435,6 +475,10 @@ def main(argv=None):
     a = p.parse_args(argv)
     if a.merge:
         merge(a.merge.split(","), a.out)
+        return
+    if a.rederive:
+        for name in a.rederive.split(","):
+            _derive(json.loads((RESULTS / f"{name}.json").read_text()), name)
         return
     if a.replot:
         plot(json.loads((RESULTS / f"{a.out}.json").read_text()), RESULTS / f"{a.out}.png")
@@ -472,6 +516,8 @@ def main(argv=None):
         ref_scheme, ref_h, ref_tol = "eG(2)", 0.0025, 1e-9
     if a.tols:
         tols = [float(t) for t in a.tols.split(",")]
+    if a.hs:
+        hs = {m: [float(h) for h in a.hs.split(",")] for m in hs}
     if a.methods:
         keep = set(a.methods.split(","))
         schemes = {k: v for k, v in schemes.items() if k in keep}
