@@ -47,8 +47,9 @@ def rhs_ms(scene, n=50):
     """One right-hand side of the scene's ODE [ms] (pass a lumped-mass scene: a consistent
     mass adds CG iterations that are not the physics): `n` evaluations chained in one
     compiled loop with the time loop's XLA options (each input depends on the last
-    output, so none is skipped), the minimum over repeats divided by `n`. Timed as one host call each (before session 31),
-    dispatch was part of every evaluation (0.41-0.50 ms on 2D r4 on two days)."""
+    output, so none is skipped), the minimum over repeats divided by `n`. Timed as one
+    host call each (before session 31), dispatch was part of every evaluation (0.41-0.58 ms
+    on 2D r4 across runs; chained 0.40-0.44 ms)."""
     ode = jv.semidiscrete(scene)
     y = jax.numpy.asarray(ode.y0)
 

@@ -171,9 +171,9 @@ def _issue16():
     for names, key, err, peers in ((("work_precision_r3_front", "work_precision_r3_peers"), "2D L-shape r3", "0.0001",
                                     (("diffrax Tsit5", 5.0), ("scipy Radau", 30.0))),
                                    (("work_precision_r1",), "2D L-shape r1", "1e-06", (("scipy Radau", 2.0),))):
+        loaded = {name: _load(name) for name in names}  # each file read once
         for peer, factor in peers:
-            for name in names:
-                wp = _load(name)
+            for name, wp in loaded.items():
                 summ = (wp or {}).get("adaptive_summary", {}).get(key, {}).get(err, {})
                 w = summ.get("wall_at_error_s", {}).get(peer)
                 if w is None:
@@ -191,7 +191,7 @@ def _issue16():
                 put(f"{key} at error {float(err):g}: {peer} wall time / best eG's", ratio, f">= {factor:g}",
                     ratio >= factor, name, wp,
                     note=(f"at least: best eG {best} {cands[best]:.3g} s is its cheapest run, more accurate than "
-                          f"{float(err):g}" if best in bound and cands[best] == bound[best] else
+                          f"{float(err):g}" if cands[best] == bound.get(best) else
                           f"best eG {best} {cands[best]:.3g} s"))
                 break
     src, sc3 = first("scaling_s17", "scaling")
