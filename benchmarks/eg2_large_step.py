@@ -7,7 +7,7 @@ Newton iterations, while cG(2) and eG(3) converge in 4. This script asks whether
 nonlinear solver or the discrete problem is at fault, on the first step of
 `jv.scenes.lshape()` (2D r1, consistent mass):
 
-1. exact Newton with the dense Jacobian (`jax.jacfwd`; the step has ~1.5e3 unknowns at
+1. exact Newton with the dense Jacobian (`jax.jacfwd`; the step has 2096 unknowns at
    r1, a diagnostic like the tests' finite-difference checks, not a solver path), from
    the predictor and from cG(2)'s converged step;
 2. continuation in the size of eG's algorithmic correction: beta -> s * beta in the
