@@ -14,8 +14,8 @@ nonlinear solver or the discrete problem is at fault, on the first step of
    stress and in the flow rule's driving force (s = 0 is the assumed-strain element
    without correction, s = 1 is eG(2)), each s solved by exact Newton from the previous
    solution. Recorded per s: iterations, final residual, the smallest singular value of
-   the step's Jacobian at the last iterate (it falls where the branch folds), and the largest |beta| over the
-   spatial points with that point's Gauss-quadrature strain-rate norm
+   the step's Jacobian at the last iterate, and the largest |beta| (eG(2)'s, unscaled)
+   over the spatial points with that point's Gauss-quadrature strain-rate norm
    sum_l w_l |C'(alpha_l)|^2 (beta's denominator) and |C_1 - C_0|;
 3. `simulate` with eG(2) and 3 or 4 time-quadrature points (its denominator then
    integrates |C'|^2 more accurately), 10 steps at h = 1. With more points than k the
@@ -26,13 +26,14 @@ Writes benchmarks/results/eg2_large_step.json.
 """
 
 from common import jv, machine, write_json  # noqa: I001
+from large_steps import run  # noqa: E402
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 
-from jaxvisco._solver._newton import _scale  # noqa: E402
+from jaxvisco._solver._newton import _norm, _scale  # noqa: E402
 from jaxvisco._time_element._step import make_context, nodal_fields, predictor, residual  # noqa: E402
 
 
@@ -56,11 +57,11 @@ def newton(scene, ctx, scheme, u, unravel, iterations=15, rtol=1e-10):
     f = jax.jit(lambda u: ravel_pytree(residual(scheme, scene, ctx, unravel(u)))[0])
     jac = jax.jit(jax.jacfwd(f))
     R = residual(scheme, scene, ctx, unravel(u))
-    sx, nx = float(_scale(ctx, scene, R)), R.x.size
+    sx = _scale(ctx, scene, R)
     norms = []
     for _ in range(iterations + 1):
         r = np.asarray(f(u))
-        norms.append(float(max(np.max(np.abs(r[:nx])) / sx, np.max(np.abs(r[nx:])))))
+        norms.append(float(_norm(unravel(r), sx)))
         if norms[-1] <= rtol or len(norms) > iterations:
             break
         u = u + np.linalg.solve(np.asarray(jac(u)), -r)
@@ -96,24 +97,21 @@ def main():
     out["cG2_from_predictor"] = n
     _, n, _ = newton(scene, ctx, jv.eG(2), uc, unravel)
     out["eG2_from_cG2"] = n
-    print("exact Newton, scaled residual norms:", {k: [f"{x:.1e}" for x in v] for k, v in out.items() if k != "unknowns"})
+    print("exact Newton, scaled residual norms:",
+          {k: [f"{x:.1e}" for x in v] for k, v in out.items() if k != "unknowns"})
     rows, u = [], u0
     for s in (0.0, 0.5, 0.9, 0.95, 0.98, 0.99, 0.995, 1.0):
         scheme = _Scaled(2, s)
         u, n, smin = newton(scene, ctx, scheme, u, unravel)
-        row = dict(s=s, iterations=len(n) - 1, residual=n[-1], converged=n[-1] <= 1e-10, jacobian_smallest_singular_value=smin,
-                   **worst_point(scene, ctx, scheme, unravel(u)))
+        row = dict(s=s, iterations=len(n) - 1, residual=n[-1], converged=n[-1] <= 1e-10,
+                   jacobian_smallest_singular_value=smin, **worst_point(scene, ctx, scheme, unravel(u)))
         rows.append(row)
         print({k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
     out["continuation"] = rows
-    quad = []
+    out["quadrature"] = []
     for nq in (2, 3, 4):
-        sol = jv.simulate(scene, jv.eG(2, quadrature=nq), t1=10.0, dt0=1.0, throw=False)
-        c = lambda key: np.asarray(getattr(sol, key)).astype(int).tolist()  # noqa: E731
-        quad.append(dict(quadrature=nq, status=sol.status, newton_per_step=c("newton_iterations"),
-                         chord_per_step=c("chord_iterations"), rejections_per_step=c("rejections")))
-        print(quad[-1], flush=True)
-    out["quadrature"] = quad
+        out["quadrature"].append(dict(quadrature=nq, **run(jv.eG(2, quadrature=nq), 10.0, 1.0)))
+        print(out["quadrature"][-1], flush=True)
     write_json("eg2_large_step.json", dict(machine=machine(), settings=dict(
         scene="jv.scenes.lshape() (2D r1, consistent mass)", h=1.0, step="first step (t = 0 -> 1)",
         newton="exact Newton, dense Jacobian (jax.jacfwd), full steps, rtol 1e-10 on the scaled max norm"),
