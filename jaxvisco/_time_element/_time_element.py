@@ -170,8 +170,9 @@ class eG(AbstractTimeElement):
         self.k, self.n_quad = _check_degree(k, quadrature, "eG")
 
     def _rules(self):
-        rule = _gauss(self.n_quad)
-        return rule, rule
+        # The flow rule is always collocated at the k Gauss points (D_n >= 0); the
+        # momentum and energy terms take `quadrature` points.
+        return _gauss(self.n_quad), _gauss(self.k)
 
     @property
     def enhanced(self) -> bool:
@@ -188,8 +189,8 @@ class eG(AbstractTimeElement):
         # assumed strains plus its share of the correction), the same force the
         # dissipation pairs with Gamma': with collocation at the Gauss points every
         # point's D_n is a sum of non-negative terms (see `point_dissipation`).
-        Gl = jnp.einsum("lI,Iij->lij", jnp.asarray(m["V"]), G)
-        rate = jax.vmap(material.gamma_rate_from_force)(e["Y"], Gl)
+        Gg = jnp.einsum("mI,Iij->mij", jnp.asarray(mg["V"]), G)
+        rate = jax.vmap(material.gamma_rate_from_force)(e["Y"], Gg)
         R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), e["Gd"] - h * rate)
         return P, sym_to_vec(R_G)
 
@@ -204,7 +205,7 @@ class eG(AbstractTimeElement):
         a point at rest that still relaxes ($C' = 0$) puts the defect on $\\Gamma'$
         instead of dividing by zero (THEORY §3, second point).
         """
-        m, _ = self.matrices()
+        m, mg = self.matrices()
         V, D, w = (jnp.asarray(m[key]) for key in ("V", "D", "weights"))
         CI = _cauchy_green(F)
         Cbar = jnp.einsum("lI,Iij->lij", V, CI)
@@ -219,18 +220,25 @@ class eG(AbstractTimeElement):
             dpsi = material.free_energy_increment(CI[0], dC)
             power = jnp.sum(w * ddot(S, Cd)) / 2.0
             den = jnp.sum(w * ddot(Cd, Cd))
-            Gl = Gd = dpsi_dG = None
+            Gd = dpsi_dG = wg = None
         else:
             Gl = jnp.einsum("lI,Iij->lij", V, G)
-            Gd = jnp.einsum("lI,Iij->lij", D, G)
-            S, dpsi_dG = jax.vmap(material.stress_and_gamma_gradient)(Cbar, Gl)
+            if mg is m:
+                S, dpsi_dG = jax.vmap(material.stress_and_gamma_gradient)(Cbar, Gl)
+                Gd, wg = jnp.einsum("lI,Iij->lij", D, G), w
+            else:  # the flow rule's own points (collocation at the k Gauss points)
+                Vg, Dg, wg = (jnp.asarray(mg[key]) for key in ("V", "D", "weights"))
+                S = jax.vmap(material.stress)(Cbar, Gl)
+                dpsi_dG = jax.vmap(material.energy_gradient_gamma)(jnp.einsum("mI,Iij->mij", Vg, CI),
+                                                                   jnp.einsum("mI,Iij->mij", Vg, G))
+                Gd = jnp.einsum("mI,Iij->mij", Dg, G)
             dpsi = material.free_energy_increment(CI[0], dC, G[0], G[-1])
-            power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(w * ddot(dpsi_dG, Gd))
-            den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(w * ddot(Gd, Gd))
+            power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(wg * ddot(dpsi_dG, Gd))
+            den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(wg * ddot(Gd, Gd))
         beta = (dpsi - power) * den / (den**2 + _BETA_FLOOR**2)
         # The algorithmic driving force of the flow rule and the dissipation.
         Y = None if G is None else dpsi_dG + 4.0 * beta * Gd
-        return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, Y=Y, beta=beta, w=w)
+        return dict(Cbar=Cbar, S=S, Cd=Cd, Gd=Gd, Y=Y, beta=beta, w=w, wg=wg)
 
     def point_dissipation(self, material, F, G, h):
         """$-\\int Y : \\Gamma_h' d\\alpha$ with the algorithmic driving force
@@ -243,7 +251,7 @@ class eG(AbstractTimeElement):
         if G is None:
             return jnp.zeros((), dtype=F.dtype)
         e = self._enhanced_terms(material, F, G)
-        return -jnp.sum(e["w"] * ddot(e["Y"], e["Gd"]))
+        return -jnp.sum(e["wg"] * ddot(e["Y"], e["Gd"]))
 
 
 class Midpoint(AbstractStandardTimeElement):
