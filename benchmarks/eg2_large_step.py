@@ -18,9 +18,12 @@ nonlinear solver or the discrete problem is at fault, on the first step of
    over the spatial points with that point's Gauss-quadrature strain-rate norm
    sum_l w_l |C'(alpha_l)|^2 (beta's denominator) and |C_1 - C_0|;
 3. `simulate` with eG(2) and 3 or 4 time-quadrature points (its denominator then
-   integrates |C'|^2 more accurately), 10 steps at h = 1. With more points than k the
-   flow rule is no longer collocation and D_n >= 0 is not guaranteed (`eG`), so this is
-   a diagnosis, not a remedy.
+   integrates |C'|^2 more accurately), 10 steps at h = 1. Since session 33 the flow rule
+   stays collocated at the k Gauss points (D_n >= 0 for every quadrature), but with more
+   points than k angular momentum is not conserved (`eG`; `large_steps.py` records
+   it), so this is a diagnosis, not a remedy. (The stored counts were measured in
+   session 32, when the flow rule took the same points; session 33's rule gave the same
+   counts for 4 points: `large_steps.json`.)
 
 Writes benchmarks/results/eg2_large_step.json.
 """

@@ -56,11 +56,12 @@ def test_deformation_velocity_is_kept():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("k, max_newton", [(1, 7), (3, 5)])
-def test_large_steps_paper_scene(k, max_newton):
+@pytest.mark.parametrize("k, q, max_newton", [(1, None, 7), (3, None, 5), (2, 4, 6)])
+def test_large_steps_paper_scene(k, q, max_newton):
     """The paper scene at h = 1 (0.6 rad per step): Newton iterations per step measured
     with the rigid-motion predictor (eG(1) 6.0, eG(3) 4.4 per step; with uniform motion
-    9.5 and 9.0), no rejected step."""
-    sol = jv.simulate(jv.scenes.lshape(dim=2, refinement=1), jv.eG(k), t1=10.0, dt0=1.0)
+    9.5 and 9.0), no rejected step. eG(2) halves every step there; with 4 time points
+    (not momentum-conserving, docs/theory.md) it takes them in 1-6 iterations."""
+    sol = jv.simulate(jv.scenes.lshape(dim=2, refinement=1), jv.eG(k, quadrature=q), t1=10.0, dt0=1.0)
     its = np.asarray(sol.newton_iterations)
     assert int(np.asarray(sol.rejections).sum()) == 0 and its.max() <= max_newton
