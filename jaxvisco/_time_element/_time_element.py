@@ -262,9 +262,9 @@ class eG(AbstractTimeElement):
         same $Y$ (`_rules`: the k-point rule whatever the momentum quadrature), so this
         equals $h\\sum_l w_l \\operatorname{tr}(M_l\\,\\mathbb{V}^{-1}:M_l) \\ge 0$,
         $M_l = -2Y_l\\Gamma_l$. Until the two rules were separated, more momentum points
-        than k made the weak flow rule non-collocated and the sign free: eG(1,
-        quadrature=2) on the L-shape with eta_dev = 500, h = 1 had points dissipating
-        -1.0 times the largest point's dissipation."""
+        than k made the weak flow rule non-collocated and the sign free: drawn point
+        histories of a fast-relaxing material over h = 1 dissipated D < 0 in 32 of 115
+        with eG(1, quadrature=2) (`tests/test_time_integration.py`)."""
         if G is None:
             return jnp.zeros((), dtype=F.dtype)
         e = self._enhanced_terms(material, F, G)
