@@ -55,7 +55,7 @@ def test_deformation_velocity_is_kept():
     np.testing.assert_allclose(np.asarray(inc), 0.3 * np.asarray(u), atol=1e-14)
 
 
-@pytest.mark.slow
+@pytest.mark.timeout(300)
 @pytest.mark.parametrize("k, q, max_newton", [(1, None, 7), (3, None, 5), (2, 4, 6)])
 def test_large_steps_paper_scene(k, q, max_newton):
     """The paper scene at h = 1 (0.6 rad per step): Newton iterations per step measured
