@@ -295,7 +295,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
             hs_ = h / (2.0 ** c["level"])
             ctx = make_context(scene, c["state"], c["t"], hs_)
             r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
-            new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
+            new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True)
             pick = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(ok, x, y), a, b)  # noqa: E731
             pos = c["pos"] + jnp.where(ok, jnp.right_shift(full, c["level"]), 0)
             # Grow back once the position is aligned with the coarser grid.

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import lineax as lx
 
 from .._fem._krylov import gmres
-from .._time_element._step import residual
+from .._time_element._step import carries_dissipation, residual_and_dissipation
 from . import _amg
 from ._linear import GMRES, AbstractLinearSolver, Direct, from_legacy
 from ._sparse import RETAIN
@@ -35,7 +35,9 @@ from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
 # The step residual as a program of its own inside the loop: the chord iterations and
 # Newton's linearization call it with the same shapes, so it is traced once and the
 # linearization transforms that trace (XLA inlines the call: the loop compiles to +1 % HLO).
-_residual = eqx.filter_jit(residual)
+# With eG it also yields the step's dissipation at the point it evaluates
+# (`residual_and_dissipation`): the accepted iterate's is the step's `D_n`.
+_residual = eqx.filter_jit(residual_and_dissipation)
 
 
 class NewtonKrylov(eqx.Module):
@@ -118,6 +120,7 @@ class NewtonResult(eqx.Module):
     chord_iterations: jax.Array
     residual: jax.Array
     tangent: Tangent
+    dissipation: jax.Array | None = None  # D_n at U, where the residual carries it
 
 
 def _scale(ctx, scene, R0):
@@ -174,7 +177,9 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     does), so a full Newton step costs one linearization plus its Krylov vectors; the
     line search's backtracking trials are further passes that skip the solve.
     """
-    res = lambda U: _residual(scheme, scene, ctx, U)  # noqa: E731
+    res_D = lambda U: _residual(scheme, scene, ctx, U)  # noqa: E731  (R, D_n or None)
+    res = lambda U: res_D(U)[0]  # noqa: E731
+    has_D = carries_dissipation(scheme, scene)
     direct = isinstance(solver.linear_solver, Direct)
     lin = solver.linear_solver
     stale = direct | tangent.stale | (tangent.h != ctx.h)
@@ -190,14 +195,14 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         first = c["it"] < 0
         Ut = _axpy(c["a"], c["dU"], c["U"])
         if direct:
-            Rt, jvp = res(Ut), None
+            (Rt, Dt), jvp = res_D(Ut), None
         elif lin.memory_first(scene):
             # no linearization kept through the tangent formation and the Krylov loop
             # (hex8 r4: 103 MB of XLA buffers at the peak); each JVP re-runs the primal
-            Rt = res(Ut)
+            Rt, Dt = res_D(Ut)
             jvp = lambda v: jax.jvp(res, (Ut,), (v,))[1]  # noqa: E731
         else:
-            Rt, jvp = jax.linearize(res, Ut)
+            Rt, jvp, Dt = jax.linearize(res_D, Ut, has_aux=True)
         sx = jnp.where(first, _scale(ctx, scene, Rt), c["sx"])
         norm_t = _norm(Rt, sx)
         decrease = _merit(Rt, sx) <= (1.0 - 1e-4 * c["a"]) * _merit(c["R"], sx)
@@ -236,7 +241,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         dU, n_lin, tan = jax.lax.cond(go_on, newton_step, skip, c["tan"])
         keep = lambda new, old: jax.tree_util.tree_map(lambda n, o: jnp.where(accept, n, o), new, old)  # noqa: E731
         return dict(
-            U=keep(Ut, c["U"]), R=keep(Rt, c["R"]), norm=jnp.where(accept, norm_t, c["norm"]),
+            U=keep(Ut, c["U"]), R=keep(Rt, c["R"]), D=keep(Dt, c["D"]), norm=jnp.where(accept, norm_t, c["norm"]),
             prev=jnp.where(accept, prev, c["prev"]), sx=sx, dU=dU,
             a=jnp.where(accept, 1.0, 0.5 * c["a"]), n_ls=jnp.where(accept, 0, c["n_ls"] + 1),
             it=c["it"] + go_on.astype(int) + first.astype(int), kits=c["kits"] + n_lin, tan=tan,
@@ -249,6 +254,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     # (`jax.eval_shape` traced the whole residual again: ~0.4 s of a cold first call).
     zero = jax.tree_util.tree_map(jnp.zeros_like, U0)
     U_start, chord_its, chord_done = U0, jnp.asarray(0), jnp.asarray(False)
+    D_none = jnp.asarray(0.0) if has_D else None
     chord_state = None
     form_at_start = lin.memory_first(scene) and not direct
     if form_at_start:
@@ -265,9 +271,9 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         tangent = jax.lax.cond(stale, lambda: form(U0), lambda: tangent)
         stale = jnp.asarray(False)
     if solver.chord and not direct:
-        chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res)
+        chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none)
         U_start, chord_its, chord_done = chord_state["U"], chord_state["it"], chord_state["done"]
-    init = dict(U=U_start, R=zero,
+    init = dict(U=U_start, R=zero, D=D_none,
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
                 a=jnp.asarray(0.0), n_ls=jnp.asarray(0), it=jnp.asarray(-1), kits=jnp.asarray(0),
                 tan=tangent, refresh=stale, asked=jnp.asarray(False), pending=~chord_done)
@@ -275,16 +281,17 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     if chord_state is not None:
         c = dict(c, norm=jnp.where(chord_done, chord_state["norm"], c["norm"]),
                  prev=jnp.where(chord_done, chord_state["prev"], c["prev"]),
-                 it=jnp.where(chord_done, 0, c["it"]))
+                 it=jnp.where(chord_done, 0, c["it"]),
+                 D=None if not has_D else jnp.where(chord_done, chord_state["D"], c["D"]))
     converged = done(c["norm"], c["prev"])
     stale_after = (~converged) | (c["it"] > solver.reuse_limit)
     if form_at_start:  # a refresh Newton asked for (it does not form here): at the next step
         stale_after = stale_after | c["asked"]
     tan = eqx.tree_at(lambda t: t.stale, c["tan"], stale_after)
-    return NewtonResult(c["U"], converged, c["it"], c["kits"], chord_its, c["norm"], tan)
+    return NewtonResult(c["U"], converged, c["it"], c["kits"], chord_its, c["norm"], tan, c["D"])
 
 
-def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
+def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none):
     """Chord iterations on the stored factorization: U <- U - P^{-1} R(U), one residual and
     one block solve each, while the residual contracts by `chord_contraction` per
     iteration; stops at convergence (rtol, strictly) or hands the last point reached by
@@ -295,22 +302,23 @@ def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res):
         return c["go"]
 
     def body(c):
-        R = res(c["Ut"])
+        R, D = res_D(c["Ut"])
         sx = jnp.where(c["it"] == 0, _scale(ctx, scene, R), c["sx"])
         norm = _norm(R, sx)
         contracting = (c["it"] == 0) | (norm <= solver.chord_contraction * c["norm"])
         better = contracting & jnp.isfinite(norm)
-        U = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), c["Ut"], c["U"])
+        U, D = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), (c["Ut"], D), (c["U"], c["D"]))
         done = better & (norm <= solver.rtol)
         go = better & ~done & (c["it"] < solver.chord)
         Ut = jax.lax.cond(
             go, lambda: _axpy(1.0, schur_solve(scheme, scene, ctx, tangent, jax.tree_util.tree_map(jnp.negative, R),
                                                rotation, _amg.CHORD_RTOL), c["Ut"]), lambda: c["Ut"])
-        return dict(U=U, Ut=Ut, norm=jnp.where(better, norm, c["norm"]), prev=jnp.where(better, c["norm"], c["prev"]),
+        return dict(U=U, D=D, Ut=Ut, norm=jnp.where(better, norm, c["norm"]),
+                    prev=jnp.where(better, c["norm"], c["prev"]),
                     sx=sx, it=c["it"] + 1, done=done, go=go)
 
-    init = dict(U=U0, Ut=U0, norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0),
+    init = dict(U=U0, D=D_none, Ut=U0, norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0),
                 it=jnp.asarray(0), done=jnp.asarray(False), go=~stale)
     c = jax.lax.while_loop(cond, body, init)
     # it counts residual evaluations; the solves taken = it - 1 (the last one is unused)
-    return dict(U=c["U"], norm=c["norm"], prev=c["prev"], it=jnp.maximum(c["it"] - 1, 0), done=c["done"])
+    return dict(U=c["U"], D=c["D"], norm=c["norm"], prev=c["prev"], it=jnp.maximum(c["it"] - 1, 0), done=c["done"])

@@ -92,7 +92,26 @@ def external_term(scheme, scene, ctx):
 def residual(scheme, scene: Scene, ctx: StepContext, U: Unknowns) -> Unknowns:
     """Weak residual of the time element: momentum equations (k, n, d) in units of
     momentum, evolution law (k, n_cells, nq, 6) dimensionless."""
-    R_x, R_G = _unconstrained_residual(scheme, scene, ctx, U)
+    return _constrained(scheme, scene, ctx, U, *_unconstrained_residual(scheme, scene, ctx, U))
+
+
+def carries_dissipation(scheme, scene):
+    """Whether `residual_and_dissipation` yields the step's dissipation (eG with an
+    internal variable: its point kernel has the dissipation at hand)."""
+    return scheme.enhanced and scene.has_internal_variable
+
+
+def residual_and_dissipation(scheme, scene: Scene, ctx: StepContext, U: Unknowns):
+    """`residual` and the step's dissipation $D_n$ at U from the same point evaluations
+    (`carries_dissipation`; else None), as Newton's loop evaluates it."""
+    if not carries_dissipation(scheme, scene):
+        return residual(scheme, scene, ctx, U), None
+    R_x, R_G, d = _unconstrained_residual(scheme, scene, ctx, U, with_dissipation=True)
+    return _constrained(scheme, scene, ctx, U, R_x, R_G), scene.disc.integrate(d)
+
+
+def _constrained(scheme, scene, ctx, U, R_x, R_G):
+    """The step residual from the unconstrained one (`_unconstrained_residual`)."""
     if scene.fixed is not None:
         # Held components: the momentum equation is replaced by the constraint, scaled
         # to momentum units like the rows it replaces.
@@ -111,12 +130,16 @@ def held_targets(scheme, scene, ctx):
     return jax.vmap(scene.held_positions)(ts)
 
 
-def _unconstrained_residual(scheme, scene, ctx, U):
+def _unconstrained_residual(scheme, scene, ctx, U, with_dissipation=False):
     """The residual with every momentum equation kept (held rows too: there it is the
-    reaction's share, `reaction_work`)."""
+    reaction's share, `reaction_work`); `with_dissipation`: and the dissipation of every
+    spatial point (`residual_and_dissipation`)."""
     m, _ = scheme.matrices()
     X, F, G = nodal_fields(scheme, scene, ctx, U)
-    P, R_G = scene.map_points(lambda mat, f, g: scheme.point_kernel(mat, f, g, ctx.h), F, G)
+    if with_dissipation:
+        P, R_G, d = scene.map_points(lambda mat, f, g: scheme.point_kernel_and_dissipation(mat, f, g, ctx.h), F, G)
+    else:
+        P, R_G = scene.map_points(lambda mat, f, g: scheme.point_kernel(mat, f, g, ctx.h), F, G)
     MX = scene.disc.mass_matvec(X, scene.density)
     R_x = (jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["A"]), MX) / ctx.h
            + jnp.asarray(m["b"])[:, None, None] * ctx.state.p[None]
@@ -124,7 +147,8 @@ def _unconstrained_residual(scheme, scene, ctx, U):
     ext = external_term(scheme, scene, ctx)
     if ext is not None:
         R_x = R_x - ext
-    return R_x, None if R_G is None else jnp.moveaxis(R_G, 2, 0)
+    R_G = None if R_G is None else jnp.moveaxis(R_G, 2, 0)
+    return (R_x, R_G, d) if with_dissipation else (R_x, R_G)
 
 
 def constraint_scale(scene, h):
@@ -240,11 +264,17 @@ def predictor(scheme, scene, ctx, velocity) -> Unknowns:
     return Unknowns(x, g)
 
 
-def step_outcome(scheme, scene, ctx, r):
+def step_outcome(scheme, scene, ctx, r, dissipation_of_solve=False):
     """What a solved step yields: end state, dissipation, external work, end velocity,
-    and whether it is acceptable (Newton converged and every value finite)."""
+    and whether it is acceptable (Newton converged and every value finite).
+    `dissipation_of_solve`: take the dissipation that the solve evaluated with its last
+    residual (`NewtonResult.dissipation`, where there is one) instead of evaluating it
+    again; not differentiable (the loops whose derivative replays their steps)."""
     new = end_state(scheme, scene, ctx, r.U)
-    D = step_dissipation(scheme, scene, ctx, r.U)
+    if dissipation_of_solve and r.dissipation is not None:
+        D = r.dissipation
+    else:
+        D = step_dissipation(scheme, scene, ctx, r.U)
     W = external_work(scheme, scene, ctx, r.U)
     finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.p)) & jnp.isfinite(D)
     if new.gamma is not None:
