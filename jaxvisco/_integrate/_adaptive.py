@@ -112,7 +112,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         t_next = jnp.where(last, t1, t + h_try)
         ctx = make_context(scene, c["state"], t, h_try)
         r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
-        new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r)
+        new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True)
         err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol)
         err = jnp.where(ok & jnp.isfinite(err), err, jnp.inf)
         at_min = h_try <= ctrl.dtmin * (1.0 + 1e-12)
