@@ -179,7 +179,6 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     """
     res_D = lambda U: _residual(scheme, scene, ctx, U)  # noqa: E731  (R, D_n or None)
     res = lambda U: res_D(U)[0]  # noqa: E731
-    has_D = carries_dissipation(scheme, scene)
     direct = isinstance(solver.linear_solver, Direct)
     lin = solver.linear_solver
     stale = direct | tangent.stale | (tangent.h != ctx.h)
@@ -254,7 +253,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     # (`jax.eval_shape` traced the whole residual again: ~0.4 s of a cold first call).
     zero = jax.tree_util.tree_map(jnp.zeros_like, U0)
     U_start, chord_its, chord_done = U0, jnp.asarray(0), jnp.asarray(False)
-    D_none = jnp.asarray(0.0) if has_D else None
+    D_none = jnp.asarray(0.0) if carries_dissipation(scheme, scene) else None  # the loops' start value
     chord_state = None
     form_at_start = lin.memory_first(scene) and not direct
     if form_at_start:
@@ -282,7 +281,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         c = dict(c, norm=jnp.where(chord_done, chord_state["norm"], c["norm"]),
                  prev=jnp.where(chord_done, chord_state["prev"], c["prev"]),
                  it=jnp.where(chord_done, 0, c["it"]),
-                 D=None if not has_D else jnp.where(chord_done, chord_state["D"], c["D"]))
+                 D=jax.tree_util.tree_map(lambda a, b: jnp.where(chord_done, a, b), chord_state["D"], c["D"]))
     converged = done(c["norm"], c["prev"])
     stale_after = (~converged) | (c["it"] > solver.reuse_limit)
     if form_at_start:  # a refresh Newton asked for (it does not form here): at the next step
