@@ -134,7 +134,8 @@ def test_differentiable_run_equals_adaptive_run():
 @pytest.mark.timeout(900)
 def test_gradient_of_a_run_that_halves_its_steps():
     """A plain call whose steps are too large for Newton: every nominal step is halved
-    (counts asserted). Its forward-mode derivative (`jax.jacfwd`: `jax.jvp` along each
+    (counts asserted; eG(2) at h = 1, where its Newton iteration stalls; eG(1) at h = 2
+    was halved here until its predictor turned by the scheme's own angle, session 34). Its forward-mode derivative (`jax.jacfwd`: `jax.jvp` along each
     parameter) follows the accepted sub-steps and equals fourth-order central
     differences of the same call, whose points halve identically (so they differentiate
     the same sub-step sequence). Reverse mode is checked in
@@ -142,7 +143,7 @@ def test_gradient_of_a_run_that_halves_its_steps():
     scene = _scene()
 
     def run(theta, **kw):
-        return jv.simulate(_with(scene, theta), jv.eG(1), t1=4.0, dt0=2.0, solver=SOLVER, **kw)
+        return jv.simulate(_with(scene, theta), jv.eG(2), t1=2.0, dt0=1.0, solver=SOLVER, **kw)
 
     def loss(sol):
         return sol.dissipated[-1] + sol.free_energy[-1] + 1e-3 * jnp.mean((sol.x[-1] - scene.x0) ** 2)
@@ -154,8 +155,7 @@ def test_gradient_of_a_run_that_halves_its_steps():
     f = np.zeros((3, 4))
     for i in range(3):
         for j, s in enumerate(steps):
-            # Capacity 128 (the 2 steps padded): the program of the finite differences in
-            # test_reverse_gradient_matches_finite_differences; padding changes no result.
+            # Capacity 128 (the 2 steps padded); padding changes no result.
             sol = run(theta + s * jnp.eye(3)[i], max_steps=128)
             assert sol.status == "done" and np.asarray(sol.rejections).tolist() == [1, 1], sol.rejections
             f[i, j] = float(loss(sol))

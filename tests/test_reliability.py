@@ -244,12 +244,13 @@ def test_solver_failure_api():
 
 
 # Chunks of fixed size (--commit-every 0): with timed chunks where the failing step falls
-# depends on the clock. cG(1) fails at its 8th step.
+# depends on the clock. cG(1) fails at its 9th step (its 8th before the predictor turned by
+# the scheme's angle, session 34).
 @pytest.mark.parametrize("chunk", [
     ["--t-end", "12", "--chunk", "12"],  # one chunk: it fails midway, its good frames are kept
-    # two chunks of 7: the second fails at its first step and appends nothing (a timed chunk did so
+    # two chunks of 8: the second fails at its first step and appends nothing (a timed chunk did so
     # in a loaded test run, and the writer's finiteness check crashed on the empty chunk)
-    ["--t-end", "14", "--chunk", "7"],
+    ["--t-end", "16", "--chunk", "8"],
 ])
 def test_solver_failure_cli_keeps_good_frames(chunk, tmp_path, capsys):
     out = tmp_path / "fail.h5"
@@ -272,7 +273,7 @@ def test_solver_failure_cli_keeps_good_frames(chunk, tmp_path, capsys):
     if chunk[-1] == "12":
         assert rs.velocity is None  # a failed chunk that wrote frames leaves no predictor velocity
     else:  # the failed chunk wrote nothing: the restart is the first chunk's, its end velocity included
-        assert n == 8 and rs.velocity is not None and np.all(np.isfinite(rs.velocity))
+        assert n == 9 and rs.velocity is not None and np.all(np.isfinite(rs.velocity))
 
 
 # ------------------------------------------------------------------ restarts

@@ -109,7 +109,10 @@ def test_newmark_runs_and_conserves_linear_momentum(lshape):
     assert sol.status == "done" and dP <= 1e-10
 
 
-# The runs of tests/data/make_loop_reference.py, on the API of 0.2: capacities as in the
+# The runs of tests/data/make_loop_reference.py, on the API of 0.2 (its "eG1_halved", eG(1) at
+# h = 2 with every step halved, is left out since session 34: eG(1)'s predictor turns by the
+# scheme's own angle and takes those steps without halving, a different trajectory; "eG2"
+# keeps a halved step, h = 1, against the old loop): capacities as in the
 # tests above and test_gradients (padding changes no result), so these runs reuse those
 # compiled programs.
 LOOP_REFERENCE_RUNS = {
@@ -117,7 +120,6 @@ LOOP_REFERENCE_RUNS = {
                                  solver=TIGHT, max_steps=128),
     "eG2": lambda s: jv.simulate(s, jv.eG(2), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
                                  solver=TIGHT, max_steps=192),
-    "eG1_halved": lambda s: jv.simulate(s, jv.eG(1), t1=4.0, dt0=2.0, solver=TIGHT, max_steps=128),
     "cG1": lambda s: jv.simulate(s, jv.cG(1), t1=0.5, dt0=0.1, solver=TIGHT),
     "cG2": lambda s: jv.simulate(s, jv.cG(2), t1=0.5, dt0=0.1, solver=TIGHT),
     "Midpoint": lambda s: jv.simulate(s, jv.Midpoint(), t1=0.5, dt0=0.1, solver=TIGHT),
