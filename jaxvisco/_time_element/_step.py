@@ -7,11 +7,13 @@ follow linearly from the weak form of $M\\dot x = p$; see `time_element_matrices
 the momentum equations become a system in positions, like Newmark's in displacements.
 """
 
+import functools
 from typing import Optional
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._fem._tensor import small_solve, sym_to_vec, vec_to_sym
 from .._scene import Scene, State
@@ -306,23 +308,46 @@ def rotation_angles(scheme, z):
     eG(1) steps of the L-shape reproduce to 2e-3 rad, while the exact 0.600 mispredicts
     the body's far corner by ~0.15. Degree k >= 2 turns by z to O(z^{2k+1}). Each phase is
     taken on the branch nearest the exact angle $\alpha_I z$."""
-    re, im = _nodal_response(scheme, z)
-    exact = jnp.asarray(scheme.matrices()[0]["nodes"][1:]) * z
-    return exact + jnp.remainder(jnp.arctan2(im, re) - exact + jnp.pi, 2.0 * jnp.pi) - jnp.pi
+    num, den = (jnp.asarray(c) for c in _response_polynomials(scheme))
+    nodes, powers = jnp.asarray(scheme.matrices()[0]["nodes"][1:]), jnp.arange(den.shape[-1])
+    iz = z ** powers * jnp.asarray([1.0, 1.0, -1.0, -1.0])[powers % 4]  # (i z)^j = i^j z^j
+    even = (powers % 2 == 0)
+
+    def phase(c):
+        return jnp.arctan2(jnp.sum(jnp.where(even, 0.0, c * iz), -1), jnp.sum(jnp.where(even, c * iz, 0.0), -1))
+
+    exact = nodes * z
+    return exact + jnp.remainder(phase(num) - phase(den) - exact + jnp.pi, 2.0 * jnp.pi) - jnp.pi
 
 
-def _nodal_response(scheme, z):
-    """Real and imaginary parts (k,) of the time element's nodal solution of
-    y' = i (z / h) y, y(0) = 1, on one step (its trial and test functions, its momentum
-    rule): the k x k complex system of the weak form as a 2k x 2k real one."""
+def _response_polynomials(scheme):
+    """The time element's nodal solution of y' = lambda y, y(0) = 1 on one step as
+    y_I = N_I(h lambda) / D(h lambda): the polynomials' coefficients (k, k+1) and (k+1,),
+    lowest degree first (Cramer's rule on the k x k weak form (Q - h lambda E) y = 0 with
+    the scheme's trial and test functions and momentum rule; degree <= k, so k + 1
+    samples of the determinants determine them). Numbers at trace time: no linear solve
+    in the compiled loop (a 2k x 2k real solve there added ~300 instructions to it)."""
     m, _ = scheme.matrices()
-    W, V, D = (jnp.asarray(m[key]) for key in ("W", "V", "D"))
-    Q, E = W @ D, W @ V  # (k, k+1): the weak form of y' = lambda y is (Q - h lambda E) y = 0
-    Q1, E1, Q0, E0 = Q[:, 1:], E[:, 1:], Q[:, 0], E[:, 0]
-    A = jnp.block([[Q1, z * E1], [-z * E1, Q1]])  # y = a + i b at the new nodes
-    ab = small_solve(A, jnp.concatenate([-Q0, z * E0]))
-    k = Q1.shape[0]
-    return ab[:k], ab[k:]
+    return _polynomials_of(m["W"].tobytes(), m["V"].tobytes(), m["D"].tobytes(), m["W"].shape, m["V"].shape)
+
+
+@functools.lru_cache(maxsize=None)
+def _polynomials_of(Wb, Vb, Db, wshape, vshape):
+    W, V, D = (np.frombuffer(b).reshape(sh) for b, sh in ((Wb, wshape), (Vb, vshape), (Db, vshape)))
+    Q, E = W @ D, W @ V  # (k, k+1)
+    k = Q.shape[0]
+    lam = np.cos(np.pi * (np.arange(k + 1) + 0.5) / (k + 1))  # Chebyshev samples
+    dets = []
+    for x in lam:
+        A, rhs = Q[:, 1:] - x * E[:, 1:], -(Q[:, 0] - x * E[:, 0])
+        row = [np.linalg.det(A)]
+        for i in range(k):
+            Ai = A.copy()
+            Ai[:, i] = rhs
+            row.append(np.linalg.det(Ai))
+        dets.append(row)
+    coef = np.linalg.solve(np.vander(lam, k + 1, increasing=True), np.asarray(dets))  # (k+1, 1+k)
+    return coef[:, 1:].T.copy(), coef[:, 0].copy()
 
 
 def predictor(scheme, scene, ctx, velocity) -> Unknowns:
