@@ -112,11 +112,12 @@ def _moved(scene, h, a):
     return State(X, jnp.zeros_like(X), None), State(x1, p1, None), vc, u
 
 
-@pytest.mark.parametrize("a, share", [(0.3, 0.3), (1.5, 1.0), (-0.5, 0.0)])
+@pytest.mark.parametrize("a, share", [(0.3, 0.3), (1.5, 1.0), (-0.5, 0.5), (0.0, 0.0)])
 def test_next_velocity_keeps_the_share_of_deformation_velocity_the_step_realized(a, share):
     """The next predictor's velocity: the rigid part of M^-1 p in full, the deformation
-    velocity u scaled by the share of it the step's mean velocity carried (clipped to
-    [0, 1]): a vibration the step turned over (a < 0) is not extrapolated."""
+    velocity u scaled by the share of its speed that the step's mean velocity kept
+    (|mean deformation velocity| / |u|, at most 1): a vibration whose velocity the step
+    turned over (a = 0: no net deformation motion) is not extrapolated."""
     scene = jv.scenes.lshape(dim=2, refinement=1, viscous=False)
     h = 1e-4
     s0, s1, vc, u = _moved(scene, h, a)

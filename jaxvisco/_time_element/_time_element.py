@@ -167,7 +167,7 @@ class eG(AbstractTimeElement):
     every choice. With more points than k, angular momentum is no longer conserved
     exactly (the test functions interpolate the trajectory at the k Gauss points only):
     on the paper's L-shape at h = 1, eG(2, quadrature=4) takes every step without
-    halving (1-6 Newton iterations against 25-31 and a halving per step with 2 points)
+    halving (1-4 Newton iterations against 25-31 and a halving per step with 2 points)
     but moves the angular momentum by up to 3e-4 of it per step."""
 
     k: int = eqx.field(static=True)
