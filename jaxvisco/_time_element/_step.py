@@ -356,8 +356,9 @@ def _polynomials_of(Wb, Vb, Db, wshape, vshape):
 
 def predictor(scheme, scene, ctx, velocity) -> Unknowns:
     """Position increments from the body's current motion (its best-fitting rigid motion
-    followed exactly, `rigid_motion_increments`; uniform motion where nodes are held),
-    frozen internal variable."""
+    followed at the scheme's own rotation angle, `rigid_motion_increments` and
+    `rotation_angles`; uniform motion where nodes are held), frozen internal variable.
+    `velocity`: the last step's `next_velocity` (M^-1 p at the start of a run)."""
     m, _ = scheme.matrices()
     alpha = jnp.asarray(m["nodes"][1:])
     if scene.fixed is None:
