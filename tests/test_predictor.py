@@ -6,7 +6,8 @@ import pytest
 
 import jaxvisco as jv
 from jaxvisco._scene import State
-from jaxvisco._time_element._step import end_velocity, make_context, next_velocity, rigid_motion_increments, rotation_angles
+from jaxvisco._time_element._step import (Unknowns, end_velocity, make_context, next_velocity, rigid_motion_increments,
+                                          rotation_angles)
 
 
 def _pairwise(x):
@@ -133,6 +134,6 @@ def test_next_velocity_with_held_nodes_is_the_polynomial_end_velocity():
                     fixed=np.broadcast_to((X[:, 1] < 1e-9)[:, None], X.shape))
     s0, s1, _, _ = _moved(held, 0.1, 0.5)
     ctx = make_context(held, s0, 0.0, 0.1)
-    U = jv._time_element._step.Unknowns((s1.x - s0.x)[None], None)
+    U = Unknowns((s1.x - s0.x)[None], None)
     np.testing.assert_array_equal(np.asarray(next_velocity(jv.eG(1), held, ctx, U, s1)),
                                   np.asarray(end_velocity(jv.eG(1), ctx, U)))
