@@ -137,8 +137,9 @@ def test_gradient_of_a_run_that_halves_its_steps():
     (counts asserted; eG(2) at h = 1, where its Newton iteration stalls; eG(1) at h = 2
     was halved here until its predictor turned by the scheme's own angle, session 34).
     Its forward-mode derivative (`jax.jacfwd`: `jax.jvp` along each parameter) follows
-    the accepted sub-steps and equals fourth-order central differences of the same call, whose points halve identically (so they differentiate
-    the same sub-step sequence). Reverse mode is checked in
+    the accepted sub-steps and equals fourth-order central differences of the same call,
+    whose points halve identically (so they differentiate the same sub-step sequence).
+    Reverse mode is checked in
     test_reverse_gradient_matches_finite_differences; both differentiate the same replay."""
     scene = _scene()
 
