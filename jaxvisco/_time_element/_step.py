@@ -313,33 +313,25 @@ def rotation_angles(scheme, z):
     eG(1) steps of the L-shape reproduce to 2e-3 rad, while the exact 0.600 mispredicts
     the body's far corner by ~0.15. Degree k >= 2 turns by z to O(z^{2k+1}). Each phase is
     taken on the branch nearest the exact angle $\alpha_I z$."""
-    num, den = (jnp.asarray(c) for c in _response_polynomials(scheme))
-    nodes, powers = jnp.asarray(scheme.matrices()[0]["nodes"][1:]), jnp.arange(den.shape[-1])
-    iz = z ** powers * jnp.asarray([1.0, 1.0, -1.0, -1.0])[powers % 4]  # (i z)^j = i^j z^j
-    even = (powers % 2 == 0)
-
-    def phase(c):
-        return jnp.arctan2(jnp.sum(jnp.where(even, 0.0, c * iz), -1), jnp.sum(jnp.where(even, c * iz, 0.0), -1))
-
-    exact = nodes * z
-    return exact + jnp.remainder(phase(num) - phase(den) - exact + jnp.pi, 2.0 * jnp.pi) - jnp.pi
-
-
-def _response_polynomials(scheme):
-    """The time element's nodal solution of y' = lambda y, y(0) = 1 on one step as
-    y_I = N_I(h lambda) / D(h lambda): the polynomials' coefficients (k, k+1) and (k+1,),
-    lowest degree first (Cramer's rule on the k x k weak form (Q - h lambda E) y = 0 with
-    the scheme's trial and test functions and momentum rule; degree <= k, so k + 1
-    samples of the determinants determine them). Numbers at trace time: no linear solve
-    in the compiled loop (a 2k x 2k real solve there added ~300 instructions to it)."""
-    m, _ = scheme.matrices()
-    return _polynomials_of(m["W"].tobytes(), m["V"].tobytes(), m["D"].tobytes(), m["W"].shape, m["V"].shape)
+    num_re, num_im, den_re, den_im = (jnp.asarray(c) for c in _response_polynomials(scheme))
+    zp = z ** jnp.arange(den_re.shape[-1])
+    phase = jnp.arctan2(num_im @ zp, num_re @ zp) - jnp.arctan2(den_im @ zp, den_re @ zp)
+    exact = jnp.asarray(scheme.matrices()[0]["nodes"][1:]) * z
+    return exact + jnp.remainder(phase - exact + jnp.pi, 2.0 * jnp.pi) - jnp.pi
 
 
 @functools.lru_cache(maxsize=None)
-def _polynomials_of(Wb, Vb, Db, wshape, vshape):
-    W, V, D = (np.frombuffer(b).reshape(sh) for b, sh in ((Wb, wshape), (Vb, vshape), (Db, vshape)))
-    Q, E = W @ D, W @ V  # (k, k+1)
+def _response_polynomials(scheme):
+    """The time element's nodal solution of y' = lambda y, y(0) = 1 on one step as
+    y_I = N_I(h lambda) / D(h lambda), at h lambda = i z: the real and imaginary parts of
+    N_I(i z) and D(i z) as polynomials in z, coefficients (k, k+1), (k, k+1), (k+1,),
+    (k+1,), lowest degree first. Cramer's rule on the k x k weak form
+    (Q - h lambda E) y = 0 with the scheme's trial and test functions and momentum rule;
+    the determinants have degree <= k, so k + 1 samples determine them. Numbers at trace
+    time: no linear solve in the compiled loop (a 2k x 2k real solve there added ~300
+    instructions to it)."""
+    m, _ = scheme.matrices()
+    Q, E = m["Q"], m["W"] @ m["V"]  # (k, k+1)
     k = Q.shape[0]
     lam = np.cos(np.pi * (np.arange(k + 1) + 0.5) / (k + 1))  # Chebyshev samples
     dets = []
@@ -351,8 +343,10 @@ def _polynomials_of(Wb, Vb, Db, wshape, vshape):
             Ai[:, i] = rhs
             row.append(np.linalg.det(Ai))
         dets.append(row)
-    coef = np.linalg.solve(np.vander(lam, k + 1, increasing=True), np.asarray(dets))  # (k+1, 1+k)
-    return coef[:, 1:].T.copy(), coef[:, 0].copy()
+    coef = np.linalg.solve(np.vander(lam, k + 1, increasing=True), np.asarray(dets))  # (k+1, 1+k) in lambda
+    coef = coef * (1j ** np.arange(k + 1))[:, None]  # in z, at lambda = i z
+    num, den = coef[:, 1:].T, coef[:, 0]
+    return num.real.copy(), num.imag.copy(), den.real.copy(), den.imag.copy()
 
 
 def predictor(scheme, scene, ctx, velocity) -> Unknowns:
