@@ -141,7 +141,11 @@ def test_flow_rule_in_its_driving_force(A, B, Y, which):
     rate = np.asarray(f["rate"](C, G))
     by_force = np.asarray(_jit(m, "gamma_rate_from_force", jnp.asarray(g), jnp.asarray(G)))
     mu, eta = float(m.nonequilibrium.mu), min(float(m.eta_dev), float(m.eta_vol))
-    np.testing.assert_allclose(by_force, rate, rtol=0, atol=1e-9 * (np.abs(rate).max() + 1e-6 * mu / eta))
+    # Floor: rounding of a rate made of O(mu) stresses over eta. At C = Gamma (A = B: the
+    # rate is 0) the Mandel-stress path gives 4.4e-16 = 1.2e-15 mu/eta, the driving-force
+    # path 6.5e-17 since psi_neq is evaluated from the invariants of C Gamma^-1 (session
+    # 35); the floor was 1e-15 mu/eta, below the reference path's own rounding.
+    np.testing.assert_allclose(by_force, rate, rtol=0, atol=1e-9 * (np.abs(rate).max() + 1e-5 * mu / eta))
     Ys = mu * 0.5 * (Y + Y.T)  # an arbitrary symmetric force, not an energy gradient
     r = np.asarray(_jit(m, "gamma_rate_from_force", jnp.asarray(Ys), jnp.asarray(G)))
     M = -2.0 * Ys @ G
