@@ -8,6 +8,8 @@ residual of the evolution law. The spatial assembly (`residual`) is shared by al
 """
 
 import abc
+import functools
+import operator
 
 import equinox as eqx
 import jax
@@ -86,9 +88,9 @@ class AbstractStandardTimeElement(AbstractTimeElement):
 
     def point_kernel(self, material, F, G, h):
         m, mg = self.matrices()
-        V = jnp.asarray(m["V"])
-        Fl = jnp.einsum("lI,Iij->lij", V, F)
-        Gl = None if G is None else jnp.einsum("lI,Iij->lij", V, G)
+        V = m["V"]
+        Fl = _combine(V, F)
+        Gl = None if G is None else _combine(V, G)
         Cl = _cauchy_green(Fl)
         S = jax.vmap(material.stress)(Cl, Gl) if G is not None else jax.vmap(material.stress)(Cl)
         P = Fl @ S
@@ -97,12 +99,12 @@ class AbstractStandardTimeElement(AbstractTimeElement):
         if mg is m:
             Cg, Gg = Cl, Gl
         else:  # a separate rule for the evolution law (Newmark's midpoint)
-            Vg = jnp.asarray(mg["V"])
-            Cg = _cauchy_green(jnp.einsum("mI,Iij->mij", Vg, F))
-            Gg = jnp.einsum("mI,Iij->mij", Vg, G)
-        Gd = jnp.einsum("mI,Iij->mij", jnp.asarray(mg["D"]), G)
+            Vg = mg["V"]
+            Cg = _cauchy_green(_combine(Vg, F))
+            Gg = _combine(Vg, G)
+        Gd = _combine(mg["D"], G)
         rate = jax.vmap(material.gamma_rate)(Cg, Gg)
-        R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), Gd - h * rate)
+        R_G = _combine(mg["W"], Gd - h * rate)
         return P, sym_to_vec(R_G)
 
     def point_dissipation(self, material, F, G, h):
@@ -110,10 +112,24 @@ class AbstractStandardTimeElement(AbstractTimeElement):
         if G is None:
             return jnp.zeros((), dtype=F.dtype)
         _, mg = self.matrices()
-        Vg, wg = jnp.asarray(mg["V"]), jnp.asarray(mg["weights"])
-        Cg = _cauchy_green(jnp.einsum("mI,Iij->mij", Vg, F))
-        Gg = jnp.einsum("mI,Iij->mij", Vg, G)
+        Vg, wg = mg["V"], jnp.asarray(mg["weights"])
+        Cg = _cauchy_green(_combine(Vg, F))
+        Gg = _combine(Vg, G)
         return h * jnp.sum(wg * jax.vmap(material.dissipation)(Cg, Gg))
+
+
+def _combine(M, A):
+    """``einsum("lI,I...->l...", M, A)`` for a small constant matrix M (numpy: the
+    scheme's interpolation, derivative and test matrices) as weighted sums of the rows of
+    A, which XLA fuses with the point kernel's arithmetic. As an einsum every one of them
+    was a `dot` of its own over all points, with layout copies around it (2D L-shape r4,
+    eG(1): 5 such dots and ~50 copies in one step residual)."""
+    M = np.asarray(M)
+    rows = []
+    for row in M:
+        terms = [float(c) * A[i] for i, c in enumerate(row) if c != 0.0]
+        rows.append(functools.reduce(operator.add, terms) if terms else jnp.zeros_like(A[0]))
+    return jnp.stack(rows)
 
 
 def _cauchy_green(F):
@@ -209,7 +225,7 @@ class eG(AbstractTimeElement):
 
     def _kernel(self, material, F, G, h, e):
         m, mg = self.matrices()
-        Fl = jnp.einsum("lI,Iij->lij", jnp.asarray(m["V"]), F)
+        Fl = _combine(m["V"], F)
         P = Fl @ (e["S"] + 2.0 * e["beta"] * e["Cd"])
         if G is None:
             return P, None
@@ -217,9 +233,9 @@ class eG(AbstractTimeElement):
         # assumed strains plus its share of the correction), the same force the
         # dissipation pairs with Gamma': with collocation at the Gauss points every
         # point's D_n is a sum of non-negative terms (see `point_dissipation`).
-        Gg = jnp.einsum("mI,Iij->mij", jnp.asarray(mg["V"]), G)
+        Gg = _combine(mg["V"], G)
         rate = jax.vmap(material.gamma_rate_from_force)(e["Y"], Gg)
-        R_G = jnp.einsum("Jm,mij->Jij", jnp.asarray(mg["W"]), e["Gd"] - h * rate)
+        R_G = _combine(mg["W"], e["Gd"] - h * rate)
         return P, sym_to_vec(R_G)
 
     def _enhanced_terms(self, material, F, G):
@@ -236,11 +252,11 @@ class eG(AbstractTimeElement):
         $\\partial_\\Gamma\\Psi$, $Y$) with the flow rule's k Gauss points (`_rules`).
         """
         m, mg = self.matrices()
-        V, D, w = (jnp.asarray(m[key]) for key in ("V", "D", "weights"))
+        V, D, w = m["V"], m["D"], jnp.asarray(m["weights"])
         CI = _cauchy_green(F)
-        Cbar = jnp.einsum("lI,Iij->lij", V, CI)
-        Fl = jnp.einsum("lI,Iij->lij", V, F)
-        Cd = 2.0 * sym(jnp.swapaxes(Fl, -1, -2) @ jnp.einsum("lI,Iij->lij", D, F))
+        Cbar = _combine(V, CI)
+        Fl = _combine(V, F)
+        Cd = 2.0 * sym(jnp.swapaxes(Fl, -1, -2) @ _combine(D, F))
         # C_k - C_0 from the increment of F (exact algebra, no cancellation near C = I).
         dF = F[-1] - F[0]
         dC = jnp.swapaxes(F[0], -1, -2) @ dF
@@ -252,16 +268,16 @@ class eG(AbstractTimeElement):
             den = jnp.sum(w * ddot(Cd, Cd))
             Gd = dpsi_dG = wg = None
         else:
-            Gl = jnp.einsum("lI,Iij->lij", V, G)
+            Gl = _combine(V, G)
             if mg is m:
                 S, dpsi_dG = jax.vmap(material.stress_and_gamma_gradient)(Cbar, Gl)
-                Gd, wg = jnp.einsum("lI,Iij->lij", D, G), w
+                Gd, wg = _combine(D, G), w
             else:  # the flow rule's own points (collocation at the k Gauss points)
-                Vg, Dg, wg = (jnp.asarray(mg[key]) for key in ("V", "D", "weights"))
+                Vg, Dg, wg = mg["V"], mg["D"], jnp.asarray(mg["weights"])
                 S = jax.vmap(material.stress)(Cbar, Gl)
-                dpsi_dG = jax.vmap(material.energy_gradient_gamma)(jnp.einsum("mI,Iij->mij", Vg, CI),
-                                                                   jnp.einsum("mI,Iij->mij", Vg, G))
-                Gd = jnp.einsum("mI,Iij->mij", Dg, G)
+                dpsi_dG = jax.vmap(material.energy_gradient_gamma)(_combine(Vg, CI),
+                                                                   _combine(Vg, G))
+                Gd = _combine(Dg, G)
             dpsi = material.free_energy_increment(CI[0], dC, G[0], G[-1])
             power = jnp.sum(w * ddot(S, Cd)) / 2.0 + jnp.sum(wg * ddot(dpsi_dG, Gd))
             den = jnp.sum(w * ddot(Cd, Cd)) + 4.0 * jnp.sum(wg * ddot(Gd, Gd))
