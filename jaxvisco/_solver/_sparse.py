@@ -13,7 +13,7 @@ How compiled code reaches the host: by default through two XLA foreign-function 
 stores the programs that use them; with `jax.pure_callback` (the fallback when the
 extension is missing, or with ``JAXVISCO_HOST_LU=callback``) JAX refuses to cache a
 program ("uses host callbacks") and every process recompiles the time loop. Both paths
-run the same SuperLU code on the same thread and give identical results. A pattern is
+run the same SuperLU code on the same threads and give identical results. A pattern is
 named in the program by a hash of its sparsity pattern (`HostLU.key`), so a cached
 program finds its pattern again in a new process.
 """
@@ -24,6 +24,7 @@ import functools
 import hashlib
 import itertools
 import os
+import threading
 import weakref
 
 import jax
@@ -94,6 +95,7 @@ class HostLU:
         self._max_bytes = max_bytes
         self._bytes = collections.OrderedDict()
         self._ids = itertools.count()
+        self._lock = threading.Lock()  # the store's bookkeeping (factors and solves run on different threads)
 
     def matrix(self, data):
         vals = np.bincount(self._inverse, weights=np.asarray(data, dtype=np.float64).ravel(), minlength=self.nnz)
@@ -112,23 +114,26 @@ class HostLU:
             lu = spla.splu(self.matrix(data), permc_spec=self.permc_spec)
         except RuntimeError:  # exactly singular
             return np.int64(-1)
-        token = next(self._ids)
-        self._cache[token] = lu
-        self._bytes[token] = 12 * (lu.L.nnz + lu.U.nnz)
-        self._retain = max(int(retain), 1)
-        while len(self._cache) > 1 and (len(self._cache) > self._retain or sum(self._bytes.values()) > self._max_bytes):
-            old, _ = self._cache.popitem(last=False)
-            self._bytes.pop(old)
+        with self._lock:
+            token = next(self._ids)
+            self._cache[token] = lu
+            self._bytes[token] = 12 * (lu.L.nnz + lu.U.nnz)
+            self._retain = max(int(retain), 1)
+            while len(self._cache) > 1 and (len(self._cache) > self._retain
+                                            or sum(self._bytes.values()) > self._max_bytes):
+                old, _ = self._cache.popitem(last=False)
+                self._bytes.pop(old)
         return np.int64(token)
 
     def solve(self, token, b, trans=False):
         token = int(token)
         if token < 0:  # singular: the caller sees NaN and rejects the step
             return np.full(b.shape, np.nan)
-        lu = self._cache.get(token)
-        if lu is not None:
-            self._cache.move_to_end(token)  # least recently *used* goes first
-            self._bytes.move_to_end(token)
+        with self._lock:
+            lu = self._cache.get(token)
+            if lu is not None:
+                self._cache.move_to_end(token)  # least recently *used* goes first
+                self._bytes.move_to_end(token)
         if lu is None:
             raise RuntimeError(
                 f"jaxvisco: factorization {token} is no longer cached (the last factor call kept the "
@@ -138,10 +143,13 @@ class HostLU:
         return lu.solve(np.asarray(b, dtype=np.float64), trans="T" if trans else "N")
 
 
-# All SuperLU work runs on one dedicated host thread. XLA calls the callbacks from its
-# own (changing) threads, and glibc keeps the memory SuperLU frees in per-thread arenas:
-# a 10 000-step run grew by ~0.27 MiB per step that way, while on one thread the
-# resident memory stayed flat (1682.2 -> 1682.4 MiB over 900 steps, measured).
+# SuperLU factorizations run on one dedicated host thread. XLA calls the callbacks from
+# its own (changing) threads, and glibc keeps the memory SuperLU frees in per-thread
+# arenas: a 10 000-step run grew by ~0.27 MiB per step with everything on XLA's threads,
+# while on one thread the resident memory stayed flat (1682.2 -> 1682.4 MiB over 900
+# steps, measured). Solves run on the calling thread: what one allocates it frees before
+# it returns, and the hop to the worker and back cost ~0.25 ms per solve (2D L-shape r4,
+# eG(1), h = 0.1: 15.7-15.9 -> 14.3 ms per step, 6 solves a step; session 35).
 # The thread starts with the first factorization (importing jaxvisco starts none).
 @functools.lru_cache(maxsize=1)
 def _worker():
@@ -175,7 +183,7 @@ def _host_call(op, key, arg, src, dst):
         np.frombuffer(dst, dtype=np.int64)[0] = _on_worker(host.factor)(data, retain=arg)
     else:
         b = np.frombuffer(src, dtype=np.float64)
-        np.frombuffer(dst, dtype=np.float64)[:] = _on_worker(host.solve)(arg, b, trans=op == 2)
+        np.frombuffer(dst, dtype=np.float64)[:] = host.solve(arg, b, trans=op == 2)
 
 
 def _factor_by_key(key, data, retain):
@@ -225,9 +233,8 @@ def _lu_solve_impl(token, b, *, key, trans):
         return jax.ffi.ffi_call("jaxvisco_lu_solve", out, vmap_method="sequential")(
             token, b, key=np.int64(key), trans=np.int64(trans))
     # A solve only reads the store: a pure function of the token and b.
-    return jax.pure_callback(
-        _on_worker(functools.partial(_solve_by_key, key, trans=trans)), out, token, b, vmap_method="sequential",
-    )
+    return jax.pure_callback(functools.partial(_solve_by_key, key, trans=trans), out, token, b,
+                             vmap_method="sequential")
 
 
 def _solve_by_key(key, token, b, trans):
