@@ -43,10 +43,11 @@ def increments(ctx, U):
     return jnp.concatenate([jnp.zeros_like(ctx.state.x)[None], U.x], axis=0)
 
 
-def nodal_fields(scheme, scene, ctx, U):
+def nodal_fields(scheme, scene, ctx, U, node_major=False):
     """Position increments $X_I - x_n$ (k+1, n, d; zero at the first node), deformation
     gradients and internal variables at the time nodes of every spatial quadrature point
-    (n_cells, nq, k+1, 3, 3).
+    (n_cells, nq, k+1, 3, 3; `node_major`: (k+1, n_cells, nq, 3, 3), for
+    `Scene.map_point_histories`).
 
     The unknowns are increments, not positions: a body that has flown far from the origin
     (|x| ~ 600 at t = 100 on the paper's L-shape, moving 0.6 per step) can resolve a
@@ -57,11 +58,10 @@ def nodal_fields(scheme, scene, ctx, U):
     """
     dX = increments(ctx, U)
     F = jnp.concatenate([ctx.F0[None], ctx.F0[None] + scene.disc.gradient(U.x)], axis=0)
-    F = jnp.moveaxis(F, 0, 2)
-    if U.g is None:
-        return dX, F, None
-    G = jnp.concatenate([ctx.state.gamma[None], vec_to_sym(U.g)], axis=0)
-    return dX, F, jnp.moveaxis(G, 0, 2)
+    G = None if U.g is None else jnp.concatenate([ctx.state.gamma[None], vec_to_sym(U.g)], axis=0)
+    if node_major:
+        return dX, F, G
+    return dX, jnp.moveaxis(F, 0, 2), None if G is None else jnp.moveaxis(G, 0, 2)
 
 
 
@@ -137,11 +137,12 @@ def _unconstrained_residual(scheme, scene, ctx, U, with_dissipation=False):
     reaction's share, `reaction_work`); `with_dissipation`: and the dissipation of every
     spatial point (`residual_and_dissipation`)."""
     m, _ = scheme.matrices()
-    X, F, G = nodal_fields(scheme, scene, ctx, U)
+    X, F, G = nodal_fields(scheme, scene, ctx, U, node_major=True)
     if with_dissipation:
-        P, R_G, d = scene.map_points(lambda mat, f, g: scheme.point_kernel_and_dissipation(mat, f, g, ctx.h), F, G)
+        P, R_G, d = scene.map_point_histories(lambda mat, f, g: scheme.point_kernel_and_dissipation(mat, f, g, ctx.h),
+                                              F, G)
     else:
-        P, R_G = scene.map_points(lambda mat, f, g: scheme.point_kernel(mat, f, g, ctx.h), F, G)
+        P, R_G = scene.map_point_histories(lambda mat, f, g: scheme.point_kernel(mat, f, g, ctx.h), F, G)
     MX = scene.disc.mass_matvec(X, scene.density)
     R_x = (jnp.einsum("JI,Ind->Jnd", jnp.asarray(m["A"]), MX) / ctx.h
            + jnp.asarray(m["b"])[:, None, None] * ctx.state.p[None]
