@@ -80,7 +80,10 @@ class ReeseGovindjee(eqx.Module):
     **Arguments:**
     - `equilibrium`: scalar energy $\Psi_{eq}(C)$ (e.g. `NeoHooke`, or any function).
     - `nonequilibrium`: scalar energy $\Psi_{neq}(C_e)$ of invariants of $C_e$, or `None`
-      for a purely elastic material, which carries no internal variable at all.
+      for a purely elastic material, which carries no internal variable at all. One with
+      `from_invariants(i1, ln_j)` and `increment_from_invariants(d_i1, ln_j0, d_ln_j)`
+      (as `NeoHooke`) is evaluated from $C : \Gamma^{-T}$ and $\ln\det C - \ln\det\Gamma$,
+      without forming $C_e$ (the same function; faster, see `_INVARIANTS`).
     - `eta_dev`, `eta_vol`: viscosities (> 0; `inf` freezes that flow).
 
     All parameters are array leaves: `jax.grad` with respect to them and

@@ -239,7 +239,7 @@ class Scene(eqx.Module):
         or None: `fn(material, F, G)` with F (k+1, 3, 3) at every spatial point, outputs
         (n_cells, nq, ...). The time-node axis stays outermost, so that the kernel's
         per-node slices are contiguous blocks: 2D L-shape r4, eG(1), step residual
-        1.16-1.21 -> 1.06-1.08 ms with the point-major layout transposed per point
+        1.16-1.21 -> 1.01-1.08 ms with the point-major layout transposed per point
         (session 35). Per-cell materials and meshes taken in passes go point-major."""
         if self.cell_materials() is None and F.shape[1] <= max(1, POINTS_PER_PASS // F.shape[2]):
             inner = jax.vmap(lambda f, g: fn(self.material, f, g), in_axes=1)

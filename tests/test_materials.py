@@ -451,3 +451,25 @@ def test_energy_increment_without_cancellation(scale):
     fallback = ReeseGovindjee(lambda C: mat.equilibrium(C))
     assert float(fallback.free_energy_increment(C0, dC)) == pytest.approx(
         float(mat.equilibrium(C0 + dC) - mat.equilibrium(C0)), rel=0, abs=0)
+
+
+def test_invariant_path_is_the_same_function():
+    """A non-equilibrium energy with `from_invariants` (NeoHooke) is evaluated without
+    forming C_e = C Gamma^-1 (`_materials._INVARIANTS`): energy, stress, dPsi/dGamma and
+    the step increment agree with the same energy called at C_e (a plain function, the
+    generic path) to rounding, at drawn states away from C = Gamma."""
+    eq, ne = NeoHooke(lam=1200.0, mu=400.0), NeoHooke(lam=3000.0, mu=250.0)
+    fast = ReeseGovindjee(eq, ne, eta_dev=700.0, eta_vol=2500.0)
+    plain = ReeseGovindjee(eq, lambda Ce: ne(Ce), eta_dev=700.0, eta_vol=2500.0)
+    assert hasattr(ne, "from_invariants")
+    evaluate = eqx.filter_jit(lambda m, C, G, dC, dG: (m.free_energy(C, G), m.stress(C, G),
+                                                       m.energy_gradient_gamma(C, G),
+                                                       m.free_energy_increment(C, dC, G, G + dG)))
+    rng = np.random.default_rng(11)
+    for _ in range(4):
+        C, G0 = random_spd(rng, scale=0.3), random_spd(rng, scale=0.3)
+        dC, dG = random_sym(rng, scale=1e-3), random_sym(rng, scale=1e-3)
+        a, b = ([np.asarray(v) for v in evaluate(m, C, G0, dC, dG)] for m in (fast, plain))
+        for name, x, y in zip(("psi", "S", "dpsi_dG"), a, b):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12 * np.abs(y).max(), err_msg=name)
+        assert float(a[3]) == pytest.approx(float(b[3]), rel=1e-11), (a[3], b[3])
