@@ -105,7 +105,8 @@ class GMRES(AbstractLinearSolver):
       two digits (r8 0.6187 / 0.6189). Whole steps, r8 (196 875 unknowns), 5 steps, two
       alternating pairs: 14.6 / 15.5 -> 10.8 / 11.5 s/step, same chord, Newton and Krylov
       counts (6.4, 0.6, 2.0 per step), peak RSS 4.27 -> 4.16 GB. ``"double"`` solves the
-      block to any tolerance (float32 stops near 1e-6).
+      block to any tolerance (float32 stops near 1e-6). Derivatives of a run (the implicit
+      solve of each step, `_implicit`) use a float64 multigrid either way.
     """
 
     max_steps: int = eqx.field(static=True, default=60)
