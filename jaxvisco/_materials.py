@@ -10,7 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._fem._tensor import ddot, det3, dev, inv3, sym
+from ._fem._tensor import ddot, det3, dev, inv3, mm, sym
 from ._validation import check_positive
 
 
@@ -123,7 +123,7 @@ class ReeseGovindjee(eqx.Module):
                 i1 = ddot(C, jnp.swapaxes(inv3(Gamma), -1, -2))
                 psi = psi + ne.from_invariants(i1, 0.5 * (jnp.log(det3(C)) - jnp.log(det3(Gamma))))
             else:
-                psi = psi + ne(C @ inv3(Gamma))
+                psi = psi + ne(mm(C, inv3(Gamma)))
         return psi
 
     def free_energy_increment(self, C0, dC, Gamma0=None, Gamma1=None):
@@ -148,13 +148,13 @@ class ReeseGovindjee(eqx.Module):
                 # ln J_e1 - ln J_e0 = (ln(det C1 / det C0) - ln(det G1 / det G0)) / 2,
                 # both exact algebra on the increments (`_INVARIANTS`)
                 T = lambda A: jnp.swapaxes(A, -1, -2)  # noqa: E731
-                d_i1 = ddot(dC, T(G1inv)) - ddot(C0 @ G0inv, T(dG @ G1inv))
+                d_i1 = ddot(dC, T(G1inv)) - ddot(mm(C0, G0inv), T(mm(dG, G1inv)))
                 ln_j0 = 0.5 * (jnp.log(det3(C0)) - jnp.log(det3(Gamma0)))
                 d_ln_j = 0.5 * (log_det_ratio(inv3(C0), dC) - log_det_ratio(G0inv, dG))
                 d = d + ne.increment_from_invariants(d_i1, ln_j0, d_ln_j)
             else:
-                Ce0 = C0 @ G0inv
-                d = d + _branch_increment(ne, Ce0, dC @ G1inv - Ce0 @ dG @ G1inv)
+                Ce0 = mm(C0, G0inv)
+                d = d + _branch_increment(ne, Ce0, mm(dC, G1inv) - mm(mm(Ce0, dG), G1inv))
         return d
 
     def stress(self, C, Gamma=None):
@@ -174,9 +174,9 @@ class ReeseGovindjee(eqx.Module):
 
     def mandel_stress(self, C, Gamma):
         """Elastic Mandel stress $M_e = C_e^T S_e$, $S_e = 2\\,\\partial\\Psi_{neq}/\\partial C_e$."""
-        Ce = C @ inv3(Gamma)
+        Ce = mm(C, inv3(Gamma))
         Se = 2.0 * jax.grad(self.nonequilibrium)(Ce)
-        return Ce.T @ Se
+        return mm(Ce.T, Se)
 
     def inverse_viscosity(self, A):
         r"""$\mathbb{V}^{-1}:A$."""
@@ -187,7 +187,7 @@ class ReeseGovindjee(eqx.Module):
         r"""$\dot\Gamma = 2\Gamma(\mathbb{V}^{-1}:M_e)$; zero for an elastic material."""
         if not self.has_internal_variable:
             raise ValueError("gamma_rate: this material has no internal variable (nonequilibrium=None).")
-        return sym(2.0 * Gamma @ self.inverse_viscosity(self.mandel_stress(C, Gamma)))
+        return sym(2.0 * mm(Gamma, self.inverse_viscosity(self.mandel_stress(C, Gamma))))
 
     def gamma_rate_from_force(self, Y, Gamma):
         r"""The evolution law written in its driving force $Y$ (symmetric, in place of
@@ -198,8 +198,8 @@ class ReeseGovindjee(eqx.Module):
         \mathbb{V}^{-1}:M) \ge 0$ ($M$ is similar to a symmetric tensor): eG drives the flow
         with its algorithmic force so that its dissipation is non-negative by construction.
         """
-        M = -2.0 * Y @ Gamma
-        return sym(2.0 * Gamma @ self.inverse_viscosity(M))
+        M = -2.0 * mm(Y, Gamma)
+        return sym(2.0 * mm(Gamma, self.inverse_viscosity(M)))
 
     def dissipation(self, C, Gamma):
         r"""Dissipation per reference volume $D = -\partial\Psi/\partial\Gamma : \dot\Gamma \ge 0$,
@@ -227,7 +227,7 @@ def log_det_ratio(A_inv, dA):
     relative to the increment, not to $\ln\det A$. Written with `det3` and products
     only, whose derivatives are closed forms (a cofactor expansion here, differentiated
     in the tangent, made the time loop 20 % slower to compile)."""
-    M = A_inv @ dA
+    M = mm(A_inv, dA)
     tr = jnp.trace(M)
     return jnp.log1p(tr + 0.5 * (tr**2 - jnp.sum(M * jnp.swapaxes(M, -1, -2))) + det3(M))
 

@@ -11,6 +11,7 @@ from ._config import require_x64
 from ._fem._krylov import mass_solve
 from ._fem._passes import POINTS_PER_PASS, map_in_passes
 from ._fem._space import Discretization, StaticArray
+from ._fem._tensor import mm
 from ._materials import ReeseGovindjee
 from ._time_functions import _time_function
 from ._validation import _concrete, check_finite, check_positive
@@ -265,7 +266,7 @@ class Scene(eqx.Module):
 
     def internal_force(self, x, gamma):
         F = self.disc.deformation_gradient(x)
-        return self.disc.force(F @ self.stress(x, gamma))
+        return self.disc.force(mm(F, self.stress(x, gamma)))
 
     def diagnostics(self, state: State, velocity=None) -> dict:
         """Kinetic and free energy, H, dissipation rate, linear and angular momentum.
@@ -290,7 +291,7 @@ def angular_momentum(x, p):
 
 
 def _right_cauchy_green(F):
-    return jnp.swapaxes(F, -1, -2) @ F
+    return mm(jnp.swapaxes(F, -1, -2), F)
 
 
 def _check_orientation(JxW, tol=1e-8):

@@ -16,8 +16,8 @@ _VOIGT = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
 # with the permutation symbol (an einsum over 27 mostly-zero products per entry) XLA ran
 # them as batched `dot_general` library calls over thousands of 3x3 blocks: in the eG(1)
 # step of the 2D L-shape (refinement 4) a linearization with two JVPs took 24 ms that way
-# and 13 ms with the shifts, the same programs otherwise. Plain `@` between 3x3 stacks is
-# fine as it is (written as broadcast products and sums it measured 1.3-1.5x slower).
+# and 13 ms with the shifts, the same programs otherwise. Products of 3x3 stacks likewise
+# (`mm`).
 def _cross(a, b):
     """Cross product along the last axis (length 3) by cyclic shifts."""
     return jnp.roll(a, -1, axis=-1) * jnp.roll(b, -2, axis=-1) - jnp.roll(a, -2, axis=-1) * jnp.roll(b, -1, axis=-1)
@@ -63,7 +63,26 @@ def inv3(A):
 def _inv3_jvp(primals, tangents):
     (A,), (dA,) = primals, tangents
     Ainv = inv3(A)
-    return Ainv, -Ainv @ dA @ Ainv
+    return Ainv, -mm(mm(Ainv, dA), Ainv)
+
+
+def mm(A, B):
+    """Matrix product of the last two axes, ``A @ B``, as a broadcast product and a sum.
+
+    Why: XLA:CPU runs every batched `dot` of small blocks as a kernel of its own (with
+    layout copies around it), where products and sums fuse with the element-wise
+    arithmetic around them, in the primal and in its derivatives. Every 3x3 product of
+    the point kernels (`_materials`, `_time_element`, `_scene`, the right-hand side
+    `_tools._ode`, `inv3`'s derivative) and the local condensation of the tangent
+    (`_solver._tangent`) is written with it. Measured (2D L-shape refinement 4, lumped
+    mass, eG(1), h = 0.1, alternating processes, XLA options of `_config`): step
+    residual 1.08-1.11 -> 0.73-0.74 ms (50 chained in one program, min of 15); one
+    right-hand side 0.45-0.46 -> 0.395 ms; tangent formation 31 -> 16.5 ms; 120 steps
+    12.40 / 12.44 -> 9.87 / 9.34 ms per step (medians of 5), same iteration counts;
+    the paper scene's cold first call 7.28 / 7.32 / 7.31 -> 7.08 / 7.11 / 7.28 s. (The
+    comment above had broadcast sums 1.3-1.5x slower than `@` when XLA's fusion emitters
+    were in use, before `_config` chose the loop emitters.)"""
+    return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
 
 def sym(A):

@@ -24,7 +24,7 @@ import numpy as np
 
 from .._export import record_pattern, register_pattern
 from .._fem._passes import map_in_passes
-from .._fem._tensor import small_inv, sym_to_vec, vec_to_sym
+from .._fem._tensor import mm, small_inv, sym_to_vec, vec_to_sym
 from .._time_element._step import Unknowns, constraint_scale, force_term, nodal_fields
 from . import _amg
 from ._sparse import RETAIN, HostLU, lu_factor, lu_solve
@@ -188,9 +188,9 @@ def _point_tangent(scheme, material, h, F, G, d=3, directions=False):
     (dP_dF, dP_dg), (dR_dF, dR_dg) = jac(fun, fu, gu)
     nP = dP_dF.shape[0] * dd
     Ainv = small_inv(dR_dg.reshape(6 * k, 6 * k))
-    dG_dF = -Ainv @ dR_dF.reshape(6 * k, dd * k)
+    dG_dF = -mm(Ainv, dR_dF.reshape(6 * k, dd * k))
     dP_dg = dP_dg.reshape(nP, 6 * k)
-    dP_dF_total = dP_dF.reshape(nP, dd * k) + dP_dg @ dG_dF
+    dP_dF_total = dP_dF.reshape(nP, dd * k) + mm(dP_dg, dG_dF)
     return dP_dF_total, Ainv, dG_dF, dP_dg
 
 

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fem._quadrature import gauss_legendre
-from .._fem._tensor import ddot, sym, sym_to_vec
+from .._fem._tensor import mm, ddot, sym, sym_to_vec
 from ._time_basis import time_element_matrices
 
 # Regularization of eG's algorithmic factor, (strain increment)^2 units:
@@ -93,7 +93,7 @@ class AbstractStandardTimeElement(AbstractTimeElement):
         Gl = None if G is None else _combine(V, G)
         Cl = _cauchy_green(Fl)
         S = jax.vmap(material.stress)(Cl, Gl) if G is not None else jax.vmap(material.stress)(Cl)
-        P = Fl @ S
+        P = mm(Fl, S)
         if G is None:
             return P, None
         if mg is m:
@@ -133,7 +133,7 @@ def _combine(M, A):
 
 
 def _cauchy_green(F):
-    return jnp.swapaxes(F, -1, -2) @ F
+    return mm(jnp.swapaxes(F, -1, -2), F)
 
 
 def _check_degree(k, n_quad, name):
@@ -226,7 +226,7 @@ class eG(AbstractTimeElement):
     def _kernel(self, material, F, G, h, e):
         m, mg = self.matrices()
         Fl = _combine(m["V"], F)
-        P = Fl @ (e["S"] + 2.0 * e["beta"] * e["Cd"])
+        P = mm(Fl, e["S"] + 2.0 * e["beta"] * e["Cd"])
         if G is None:
             return P, None
         # The flow is driven by the algorithmic force (the energy gradient at the
@@ -256,11 +256,11 @@ class eG(AbstractTimeElement):
         CI = _cauchy_green(F)
         Cbar = _combine(V, CI)
         Fl = _combine(V, F)
-        Cd = 2.0 * sym(jnp.swapaxes(Fl, -1, -2) @ _combine(D, F))
+        Cd = 2.0 * sym(mm(jnp.swapaxes(Fl, -1, -2), _combine(D, F)))
         # C_k - C_0 from the increment of F (exact algebra, no cancellation near C = I).
         dF = F[-1] - F[0]
-        dC = jnp.swapaxes(F[0], -1, -2) @ dF
-        dC = dC + jnp.swapaxes(dC, -1, -2) + jnp.swapaxes(dF, -1, -2) @ dF
+        dC = mm(jnp.swapaxes(F[0], -1, -2), dF)
+        dC = dC + jnp.swapaxes(dC, -1, -2) + mm(jnp.swapaxes(dF, -1, -2), dF)
         if G is None:
             S = jax.vmap(material.stress)(Cbar)
             dpsi = material.free_energy_increment(CI[0], dC)

@@ -22,7 +22,7 @@ import scipy.sparse as sp
 
 from .._config import jit
 from .._fem._space import embed_3d
-from .._fem._tensor import sym_to_vec, vec_to_sym
+from .._fem._tensor import mm, sym_to_vec, vec_to_sym
 from .._scene import Scene, State, _right_cauchy_green
 
 
@@ -174,7 +174,7 @@ def _energy(scene, y):
 def _element_kernel(material, dim, dN, JxW, x_el, g_el):
     """Internal force of one element (n_en, d) and Γ̇ at its quadrature points (nq, 6)."""
     F = embed_3d(jnp.einsum("ai,qaJ->qiJ", x_el, dN))
-    C = jnp.swapaxes(F, -1, -2) @ F
+    C = mm(jnp.swapaxes(F, -1, -2), F)
     if g_el is None:
         S = jax.vmap(material.stress)(C)
         rate = None
@@ -182,7 +182,7 @@ def _element_kernel(material, dim, dN, JxW, x_el, g_el):
         G = vec_to_sym(g_el)
         S = jax.vmap(material.stress)(C, G)
         rate = sym_to_vec(jax.vmap(material.gamma_rate)(C, G))
-    P = F @ S
+    P = mm(F, S)
     f = jnp.einsum("q,qiJ,qaJ->ai", JxW, P[:, :dim, :dim], dN)
     return f, rate
 
