@@ -14,6 +14,7 @@ from jaxvisco._fem._tensor import (
     det3,
     dev,
     inv3,
+    mm,
     small_inv,
     small_solve,
     sym,
@@ -177,3 +178,20 @@ def test_small_solve_single_and_exact():
     x = jax.jit(small_solve)(A, A @ x_true)
     np.testing.assert_allclose(x, x_true, rtol=1e-14)
     np.testing.assert_allclose(jax.jit(small_inv)(A) @ A, np.eye(3), atol=1e-15)
+
+
+def test_mm_is_the_matrix_product(rng):
+    """`mm` (broadcast products and a sum) is `@` on stacks of square and rectangular
+    blocks, with broadcasting batch axes, and so are its forward and reverse derivatives."""
+    for a_shape, b_shape in [((50, 3, 3), (50, 3, 3)), ((4, 6, 6), (4, 6, 4)), ((7, 4, 6), (6, 4)),
+                             ((2, 1, 3, 3), (5, 3, 3))]:
+        A, B = rng.standard_normal(a_shape), rng.standard_normal(b_shape)
+        np.testing.assert_allclose(np.asarray(mm(A, B)), A @ B, rtol=1e-13, atol=1e-13)
+        dA, dB = rng.standard_normal(a_shape), rng.standard_normal(b_shape)
+        _, tangent = jax.jvp(mm, (jnp.asarray(A), jnp.asarray(B)), (jnp.asarray(dA), jnp.asarray(dB)))
+        np.testing.assert_allclose(np.asarray(tangent), dA @ B + A @ dB, rtol=1e-12, atol=1e-12)
+        W = rng.standard_normal(np.broadcast_shapes(a_shape[:-2], b_shape[:-2]) + (a_shape[-2], b_shape[-1]))
+        gA, gB = jax.grad(lambda a, b: jnp.sum(W * mm(a, b)), argnums=(0, 1))(jnp.asarray(A), jnp.asarray(B))
+        wA, wB = jax.grad(lambda a, b: jnp.sum(W * (a @ b)), argnums=(0, 1))(jnp.asarray(A), jnp.asarray(B))
+        np.testing.assert_allclose(np.asarray(gA), np.asarray(wA), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(gB), np.asarray(wB), rtol=1e-12, atol=1e-12)
