@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fem._quadrature import gauss_legendre
-from .._fem._tensor import mm, ddot, sym, sym_to_vec
+from .._fem._tensor import ddot, mm, sym, sym_to_vec
 from ._time_basis import time_element_matrices
 
 # Regularization of eG's algorithmic factor, (strain increment)^2 units:
