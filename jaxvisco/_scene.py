@@ -11,7 +11,7 @@ from ._config import require_x64
 from ._fem._krylov import mass_solve
 from ._fem._passes import POINTS_PER_PASS, map_in_passes
 from ._fem._space import Discretization, StaticArray
-from ._fem._tensor import mm
+from ._fem._tensor import mm, right_cauchy_green
 from ._materials import ReeseGovindjee
 from ._time_functions import _time_function
 from ._validation import _concrete, check_finite, check_positive
@@ -233,7 +233,7 @@ class Scene(eqx.Module):
         """`fn(material, F, G)` at every spatial quadrature point; F (n_cells, nq, ...) and
         G alike or None. Large meshes in passes of `POINTS_PER_PASS` points."""
         return self.map_cells(lambda mat, f, g: jax.vmap(lambda a, b: fn(mat, a, b))(f, g), F, G,
-                              per_pass=max(1, POINTS_PER_PASS // F.shape[1]))
+                              per_pass=_cells_per_pass(F.shape[1]))
 
     def map_point_histories(self, fn, F, G):
         """`map_points` for fields given node-major, F (k+1, n_cells, nq, 3, 3) and G alike
@@ -242,14 +242,14 @@ class Scene(eqx.Module):
         per-node slices are contiguous blocks: 2D L-shape r4, eG(1), step residual
         1.16-1.21 -> 1.01-1.08 ms with the point-major layout transposed per point
         (session 35). Per-cell materials and meshes taken in passes go point-major."""
-        if self.cell_materials() is None and F.shape[1] <= max(1, POINTS_PER_PASS // F.shape[2]):
+        if self.cell_materials() is None and F.shape[1] <= _cells_per_pass(F.shape[2]):
             inner = jax.vmap(lambda f, g: fn(self.material, f, g), in_axes=1)
             return jax.vmap(inner, in_axes=1)(F, G)
         point_major = lambda a: None if a is None else jnp.moveaxis(a, 0, 2)  # noqa: E731
         return self.map_points(fn, point_major(F), point_major(G))
 
     def _qp_map(self, fn, x, gamma):
-        C = _right_cauchy_green(self.disc.deformation_gradient(x))
+        C = right_cauchy_green(self.disc.deformation_gradient(x))
         return self.map_points(fn, C, gamma)
 
     def free_energy(self, x, gamma):
@@ -283,15 +283,16 @@ class Scene(eqx.Module):
         )
 
 
+def _cells_per_pass(n_qp):
+    """Cells whose points `Scene.map_points` maps at once (`POINTS_PER_PASS` points)."""
+    return max(1, POINTS_PER_PASS // n_qp)
+
+
 def angular_momentum(x, p):
     """$L = \\sum_A x_A \\times p_A$ (a scalar in 2D)."""
     if x.shape[-1] == 2:
         return jnp.sum(x[..., 0] * p[..., 1] - x[..., 1] * p[..., 0], axis=-1)
     return jnp.sum(jnp.cross(x, p), axis=-2)
-
-
-def _right_cauchy_green(F):
-    return mm(jnp.swapaxes(F, -1, -2), F)
 
 
 def _check_orientation(JxW, tol=1e-8):

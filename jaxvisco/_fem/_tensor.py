@@ -85,6 +85,11 @@ def mm(A, B):
     return jnp.sum(A[..., :, :, None] * B[..., None, :, :], axis=-2)
 
 
+def right_cauchy_green(F):
+    """$C = F^T F$ of (..., 3, 3)."""
+    return mm(jnp.swapaxes(F, -1, -2), F)
+
+
 def sym(A):
     return 0.5 * (A + jnp.swapaxes(A, -1, -2))
 

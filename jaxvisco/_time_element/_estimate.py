@@ -43,8 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fem._quadrature import gauss_legendre
-from .._fem._tensor import sym_to_vec, vec_to_sym
-from .._scene import _right_cauchy_green
+from .._fem._tensor import right_cauchy_green, sym_to_vec, vec_to_sym
 from ._step import increments, momenta
 from ._time_basis import lagrange, lobatto_nodes
 
@@ -88,10 +87,10 @@ def defects(scheme, scene, ctx, U):
 
     if scheme.enhanced:
         # eG drives the flow with its assumed strains, interpolated through the nodes.
-        CI = jax.vmap(lambda dx: _right_cauchy_green(scene.disc.deformation_gradient(ctx.state.x + dx)))(X)
+        CI = jax.vmap(lambda dx: right_cauchy_green(scene.disc.deformation_gradient(ctx.state.x + dx)))(X)
         Cs = jnp.einsum("cI,I...->c...", V, CI)
     else:
-        Cs = jax.vmap(lambda dx: _right_cauchy_green(scene.disc.deformation_gradient(ctx.state.x + dx)))(Xs)
+        Cs = jax.vmap(lambda dx: right_cauchy_green(scene.disc.deformation_gradient(ctx.state.x + dx)))(Xs)
     gdot = jax.vmap(lambda C, g: sym_to_vec(scene.map_points(lambda m, c, gg: m.gamma_rate(c, gg), C, g)))(Cs, Gs)
     e_g = sym_to_vec(Gs) - sym_to_vec(ctx.state.gamma)[None] - h * jnp.einsum("cj,j...->c...", B, gdot)
     return e_x, e_g
@@ -122,7 +121,7 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol):
     err = jnp.max(_rms(e_x, (1, 2))) / sx
     if e_g is not None:
         eye = jnp.eye(3)
-        C = _right_cauchy_green(scene.disc.deformation_gradient(new.x))
+        C = right_cauchy_green(scene.disc.deformation_gradient(new.x))
         strain = jnp.maximum(_rms(sym_to_vec(C - eye), None), jnp.sqrt(jnp.finfo(C.dtype).eps))
         sg = atol * strain + rtol * _rms(sym_to_vec(new.gamma - eye), None)
         err = jnp.maximum(err, jnp.max(_rms(e_g, tuple(range(1, e_g.ndim)))) / sg)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fem._quadrature import gauss_legendre
-from .._fem._tensor import ddot, mm, sym, sym_to_vec
+from .._fem._tensor import ddot, mm, right_cauchy_green, sym, sym_to_vec
 from ._time_basis import time_element_matrices
 
 # Regularization of eG's algorithmic factor, (strain increment)^2 units:
@@ -91,7 +91,7 @@ class AbstractStandardTimeElement(AbstractTimeElement):
         V = m["V"]
         Fl = _combine(V, F)
         Gl = None if G is None else _combine(V, G)
-        Cl = _cauchy_green(Fl)
+        Cl = right_cauchy_green(Fl)
         S = jax.vmap(material.stress)(Cl, Gl) if G is not None else jax.vmap(material.stress)(Cl)
         P = mm(Fl, S)
         if G is None:
@@ -100,7 +100,7 @@ class AbstractStandardTimeElement(AbstractTimeElement):
             Cg, Gg = Cl, Gl
         else:  # a separate rule for the evolution law (Newmark's midpoint)
             Vg = mg["V"]
-            Cg = _cauchy_green(_combine(Vg, F))
+            Cg = right_cauchy_green(_combine(Vg, F))
             Gg = _combine(Vg, G)
         Gd = _combine(mg["D"], G)
         rate = jax.vmap(material.gamma_rate)(Cg, Gg)
@@ -113,7 +113,7 @@ class AbstractStandardTimeElement(AbstractTimeElement):
             return jnp.zeros((), dtype=F.dtype)
         _, mg = self.matrices()
         Vg, wg = mg["V"], jnp.asarray(mg["weights"])
-        Cg = _cauchy_green(_combine(Vg, F))
+        Cg = right_cauchy_green(_combine(Vg, F))
         Gg = _combine(Vg, G)
         return h * jnp.sum(wg * jax.vmap(material.dissipation)(Cg, Gg))
 
@@ -130,10 +130,6 @@ def _combine(M, A):
         terms = [float(c) * A[i] for i, c in enumerate(row) if c != 0.0]
         rows.append(functools.reduce(operator.add, terms) if terms else jnp.zeros_like(A[0]))
     return jnp.stack(rows)
-
-
-def _cauchy_green(F):
-    return mm(jnp.swapaxes(F, -1, -2), F)
 
 
 def _check_degree(k, n_quad, name):
@@ -253,7 +249,7 @@ class eG(AbstractTimeElement):
         """
         m, mg = self.matrices()
         V, D, w = m["V"], m["D"], jnp.asarray(m["weights"])
-        CI = _cauchy_green(F)
+        CI = right_cauchy_green(F)
         Cbar = _combine(V, CI)
         Fl = _combine(V, F)
         Cd = 2.0 * sym(mm(jnp.swapaxes(Fl, -1, -2), _combine(D, F)))

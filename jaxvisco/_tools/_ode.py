@@ -22,8 +22,8 @@ import scipy.sparse as sp
 
 from .._config import jit
 from .._fem._space import embed_3d
-from .._fem._tensor import mm, sym_to_vec, vec_to_sym
-from .._scene import Scene, State, _right_cauchy_green
+from .._fem._tensor import mm, right_cauchy_green, sym_to_vec, vec_to_sym
+from .._scene import Scene, State
 
 
 class SemiDiscrete:
@@ -159,7 +159,7 @@ def _rhs(scene, t, y, lumped):
         pdot = jnp.where(mask, 0.0, pdot)
     parts = [xdot.ravel(), pdot.ravel()]
     if g is not None:
-        C = _right_cauchy_green(scene.disc.deformation_gradient(x))
+        C = right_cauchy_green(scene.disc.deformation_gradient(x))
         rate = scene.map_points(lambda m, c, g: m.gamma_rate(c, g), C, gamma)
         parts.append(sym_to_vec(rate).ravel())
     return jnp.concatenate(parts)
@@ -174,7 +174,7 @@ def _energy(scene, y):
 def _element_kernel(material, dim, dN, JxW, x_el, g_el):
     """Internal force of one element (n_en, d) and Γ̇ at its quadrature points (nq, 6)."""
     F = embed_3d(jnp.einsum("ai,qaJ->qiJ", x_el, dN))
-    C = mm(jnp.swapaxes(F, -1, -2), F)
+    C = right_cauchy_green(F)
     if g_el is None:
         S = jax.vmap(material.stress)(C)
         rate = None
