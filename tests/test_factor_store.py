@@ -103,3 +103,22 @@ def test_large_factors_stay_with_superlu(monkeypatch):
     assert token not in store._published and sparse._hostlu.last_use(store.key, token) == -1
     b = np.ones(n)
     np.testing.assert_allclose(store.matrix(data) @ store.solve(token, b), b, rtol=0, atol=1e-10)
+
+
+@needs_extension
+def test_a_pattern_made_again_keeps_its_published_factors():
+    """Two stores of one pattern share its key: the older one going away retracts only
+    its own factorizations (tokens are unique in the process)."""
+    n = 6
+    rows, cols, data = _tridiagonal(n)
+    old = HostLU(rows, cols, n)
+    t_old = int(old.factor(data))
+    new = HostLU(rows, cols, n)
+    assert new.key == old.key
+    t_new = int(new.factor(2.0 * data))
+    assert t_new != t_old
+    del old
+    gc.collect()
+    b = np.ones(n)
+    np.testing.assert_allclose(new.matrix(2.0 * data) @ new.solve(t_new, b), b, rtol=1e-14)
+    assert sparse._hostlu.last_use(new.key, t_old) == -1

@@ -49,6 +49,9 @@ except ImportError:  # built without the extension: the pure_callback path
     _hostlu = None
 
 BACKENDS = ("ffi", "callback")
+# Tokens are unique in the process, not per pattern: a pattern's store made again (same
+# key) never reuses a token that an older one published, or its finalizer would retract it.
+_TOKENS = itertools.count()
 _REGISTRY = weakref.WeakValueDictionary()  # HostLU.key -> HostLU
 
 
@@ -114,7 +117,6 @@ class HostLU:
         self._retain = RETAIN
         self._max_bytes = max_bytes
         self._bytes = collections.OrderedDict()
-        self._ids = itertools.count()
         self._lock = threading.Lock()  # the store's bookkeeping (factors and solves run on different threads)
         # Where the extension is built, factors are published to it and solved there (no
         # Python in a compiled solve, on either path); its copies go with this pattern.
@@ -141,7 +143,7 @@ class HostLU:
             return np.int64(-1)
         nbytes = 12 * (lu.L.nnz + lu.U.nnz)
         with self._lock:
-            token = next(self._ids)
+            token = next(_TOKENS)
         if _hostlu is not None and lu.L.nnz + lu.U.nnz <= PUBLISH_NNZ:  # the extension solves from here on
             _hostlu.publish(self.key, token, self.n, *_triangular_factors(lu))
             self._published.add(token)
