@@ -7,6 +7,7 @@ jaxvisco computes in float64 and never switches precision behind your back: call
 from . import scenes as scenes
 from . import time_functions as time_functions
 from ._config import __version__ as __version__
+from ._config import compiler_options as compiler_options
 from ._config import enable_compilation_cache as enable_compilation_cache
 from ._config import require_x64 as require_x64
 from ._fem._boundary import boundary_facets as boundary_facets

@@ -93,7 +93,14 @@ def compiler_options():
     that this jaxlib knows (they are experimental or may go; each is probed on its own
     and an unknown one is left out), none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's
     defaults). Call it outside any JAX transformation (JAX accepts compile options on
-    top-level programs only)."""
+    top-level programs only).
+
+    Programs of your own that contain jaxvisco's kernels (an ODE solver around
+    `semidiscrete(scene).vector_field`, a loss around them) want them too:
+    ``jax.jit(f, compiler_options=jaxvisco.compiler_options())``. The point kernels'
+    3x3 products (`_tensor.mm`) are written for XLA's loop emitters; with XLA's defaults
+    one right-hand side of the 2D L-shape costs 66 us instead of 24 us (refinement 1)
+    and 1.51 ms instead of 0.38 ms (refinement 4)."""
     if os.environ.get("JAXVISCO_XLA_OPTIONS", "").strip().lower() in ("off", "0", "none", "default"):
         return {}
     known = {}
