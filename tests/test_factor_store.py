@@ -122,3 +122,29 @@ def test_a_pattern_made_again_keeps_its_published_factors():
     b = np.ones(n)
     np.testing.assert_allclose(new.matrix(2.0 * data) @ new.solve(t_new, b), b, rtol=1e-14)
     assert sparse._hostlu.last_use(new.key, t_old) == -1
+
+
+@needs_extension
+def test_the_factorization_just_made_is_never_evicted(monkeypatch):
+    """Even where another thread solved with an older factorization after the new one was
+    published (the extension's clock then ranks the new one below it), eviction keeps
+    the one the factor call returns."""
+    real = sparse._hostlu
+
+    class OlderUsedLater:
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        def last_use(self, key, token):
+            return -token  # every older token counts as used more recently
+
+    monkeypatch.setattr(sparse, "_hostlu", OlderUsedLater())
+    n = 6
+    rows, cols, data = _tridiagonal(n)
+    store = HostLU(rows, cols, n)
+    t0 = int(store.factor(data, retain=1))
+    t1 = int(store.factor(2.0 * data, retain=1))
+    b = np.ones(n)
+    np.testing.assert_allclose(store.matrix(2.0 * data) @ store.solve(t1, b), b, rtol=1e-14)
+    with pytest.raises(RuntimeError, match="no longer cached"):
+        store.solve(t0, b)

@@ -142,8 +142,7 @@ class HostLU:
         except RuntimeError:  # exactly singular
             return np.int64(-1)
         nbytes = 12 * (lu.L.nnz + lu.U.nnz)
-        with self._lock:
-            token = next(_TOKENS)
+        token = next(_TOKENS)
         if _hostlu is not None and lu.L.nnz + lu.U.nnz <= PUBLISH_NNZ:  # the extension solves from here on
             _hostlu.publish(self.key, token, self.n, *_triangular_factors(lu))
             self._published.add(token)
@@ -153,16 +152,16 @@ class HostLU:
             self._bytes[token] = nbytes
             self._retain = max(int(retain), 1)
             if len(self._cache) > self._retain or sum(self._bytes.values()) > self._max_bytes:
-                self._evict()
+                self._evict(keep=token)
         return np.int64(token)
 
-    def _evict(self):
-        """Drop the least recently used factorizations down to `retain` and `max_bytes`
-        (the newest stays). Published ones are used where the extension solves: its clock
-        orders them."""
+    def _evict(self, keep):
+        """Drop the least recently used factorizations but `keep` (the one just made) down
+        to `retain` and `max_bytes`. Published ones are used where the extension solves:
+        its clock orders them."""
         order = ([t for t in self._cache if t not in self._published]
                  + sorted(self._published, key=lambda t: _hostlu.last_use(self.key, t)))
-        for old in order[:-1]:
+        for old in (t for t in order if t != keep):
             if len(self._cache) <= self._retain and sum(self._bytes.values()) <= self._max_bytes:
                 break
             del self._cache[old], self._bytes[old]
