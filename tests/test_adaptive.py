@@ -99,6 +99,37 @@ def test_estimate_matches_true_local_error(lshape):
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.parametrize("k", [2, 3])
+def test_internal_variable_estimate_at_the_first_step(lshape, k):
+    """The first step from the rigid start (h = 0.1, where the controller at rtol 1e-3
+    starts eG(3)): the internal variable's estimate against its true local error within
+    [0.3, 3]. eG's flow rule sees strains interpolated through the time nodes; with the
+    degree-k interpolant as the estimate's strain path it under-stated 5x here (0.20 for
+    eG(3), 0.40 for eG(2)); with the end rates (`strain_path_matrices`) 0.74 and 2.0. True
+    error: cG(3) from the same state with 16 sub-steps between consecutive check points."""
+    scheme, h = jv.eG(k), 0.1
+    state = lshape.initial_state()
+    v = lshape.velocity(state.p)
+    ctx = make_context(lshape, state, jnp.asarray(0.0), jnp.asarray(h))
+    r = jax.jit(lambda c, U0: solve_step(TIGHT, scheme, lshape, c, U0, empty_tangent(scheme, lshape)))(
+        ctx, predictor(scheme, lshape, ctx, v))
+    assert bool(r.converged)
+    _, e_g = defects(scheme, lshape, ctx, r.U)
+    sigma = defect_matrices(k)[0]
+    g = np.asarray(jv._fem._tensor.sym_to_vec(jax.vmap(lambda s: dense_state(scheme, lshape, ctx, r.U, s).gamma)(
+        jnp.asarray(sigma))))
+    m = 16
+    knots = np.concatenate([[0.0], sigma])
+    ts = np.concatenate([h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(m) / m)
+                         for i in range(len(sigma))] + [[h * sigma[-1]]])
+    ref = jv.simulate(lshape, jv.cG(3), stepsize_controller=jv.StepTo(ts), saveat=jv.SaveAt(gamma=True),
+                      initial_state=state, initial_velocity=v, solver=TIGHT)
+    true_g = g - np.asarray(jv._fem._tensor.sym_to_vec(ref.gamma))[m * np.arange(1, len(sigma) + 1)]
+    eff = max(_rms(e) for e in np.asarray(e_g)) / max(_rms(e) for e in true_g)
+    assert 0.3 <= eff <= 3.0, eff
+
+
+@pytest.mark.timeout(600)
 def test_dense_output(lshape):
     """Frames at requested times come from the polynomial of the step that covers them:
     against a fine constant-step run (eG(2), h = 0.01, whose steps end at those times)
@@ -141,11 +172,13 @@ def reference_t2(lshape):
 def test_tolerance_proportionality(lshape, reference_t2, k):
     """Errors at t = 2 shrink with rtol = atol over three decades (1e-3 ... 1e-6): log-log
     slopes of the position error (over the body's size) and of the dissipated energy's
-    relative error. eG(1): both in [0.7, 1.3] (measured 0.82 and 1.00). eG(2), eG(3):
-    positions in [0.7, 1.3] (0.86, 0.75); the dissipated energy converges faster than
-    the tolerance (slope 1.34, 1.39: it is superconvergent, of order 2k at the step ends,
-    where the estimate is of order k + 1; asymptotically 2k / (k + 1)), so only its
-    lower bound is asserted. benchmarks/adaptive_proportionality.py writes the table."""
+    relative error. eG(1), eG(2): both in [0.7, 1.3] (measured 0.79 / 0.99 and 0.78 /
+    1.25; eG(2)'s dissipated energy had 1.34 before the internal-variable estimate
+    followed the end rates of the strain, `strain_path_matrices`). eG(3): positions in
+    [0.7, 1.3] (0.75); its dissipated energy converges faster than the tolerance (1.39:
+    it is superconvergent, of order 2k at the step ends, where the estimate is of order
+    k + 1; asymptotically 2k / (k + 1)), so only its lower bound is asserted.
+    benchmarks/adaptive_proportionality.py writes the table."""
     x_ref, d_ref = reference_t2
     size = _rms(x_ref - x_ref.mean(0))
     tols = np.array([1e-3, 1e-4, 1e-5, 1e-6])
@@ -159,7 +192,7 @@ def test_tolerance_proportionality(lshape, reference_t2, k):
     slope_x = np.polyfit(np.log10(tols), np.log10(e_x), 1)[0]
     slope_d = np.polyfit(np.log10(tols), np.log10(e_d), 1)[0]
     assert 0.7 <= slope_x <= 1.3, (slope_x, e_x)
-    assert 0.7 <= slope_d and (k > 1 or slope_d <= 1.3), (slope_d, e_d)
+    assert 0.7 <= slope_d and (k > 2 or slope_d <= 1.3), (slope_d, e_d)
 
 
 # 194-270 s (four programs of its own, among them a reverse-mode one): out of CI for its

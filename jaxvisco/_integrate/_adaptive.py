@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from .._config import jit
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
-from .._time_element._estimate import dense_state, scaled_error
+from .._time_element._estimate import dense_state, scaled_error, uses_end_velocities
 from .._time_element._step import make_context, predictor, step_outcome
 from ._differentiable import (
     differentiate,
@@ -70,6 +70,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
     accepted steps."""
     order = scheme.k + 1
     v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
+    rates = uses_end_velocities(scheme, scene, state0)
     diag0 = scene.diagnostics(state0, v_state0)
     H0 = diag0["energy"]
     dense = ts_out is not None
@@ -113,7 +114,12 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         ctx = make_context(scene, c["state"], t, h_try)
         r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
         new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True)
-        err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol)
+        if rates:  # M^{-1}p at the step's ends for the estimate; the end's is carried to the next step
+            vm_end = scene.velocity(new.p, rtol=1e-10)
+            err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol, (c["vm"], vm_end))
+        else:
+            vm_end = c["vm"]
+            err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol)
         err = jnp.where(ok & jnp.isfinite(err), err, jnp.inf)
         at_min = h_try <= ctrl.dtmin * (1.0 + 1e-12)
         accept = ok & ((err <= 1.0) | at_min)
@@ -153,17 +159,17 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                          chord_iterations=s["chord_iterations"].at[i].set(c["chord"] + r.chord_iterations),
                          residual=s["residual"].at[i].set(r.residual),
                          rejections=s["rejections"].at[i].set(c["rej"]))
-            return dict(i=i + 1, state=new, t=t_next, v=v_end, frames=frames, steps=steps, n_saved=n_saved,
+            return dict(i=i + 1, state=new, t=t_next, v=v_end, vm=vm_end, frames=frames, steps=steps, n_saved=n_saved,
                         dissipated=dissipated, work=work, err1=err, err2=c["err1"], its=jnp.asarray(0),
                         kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0), rec=rec)
 
         def on_reject(c):
-            return dict(i=i, state=c["state"], t=t, v=c["v"], frames=c["frames"], steps=c["steps"],
+            return dict(i=i, state=c["state"], t=t, v=c["v"], vm=c["vm"], frames=c["frames"], steps=c["steps"],
                         n_saved=c["n_saved"], dissipated=c["dissipated"], work=c["work"], err1=c["err1"],
                         err2=c["err2"], its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
                         chord=c["chord"] + r.chord_iterations, rej=c["rej"] + 1, rec=c["rec"])
 
-        keys = ("i", "state", "t", "v", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2", "its",
+        keys = ("i", "state", "t", "v", "vm", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2", "its",
                 "kits", "chord", "rej")
         out = jax.lax.cond(accept, on_accept, on_reject, dict({k: c[k] for k in keys}, rec=rec))
         out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1)
@@ -174,7 +180,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                  residual=zf, rejections=zi)
     one, zero = jnp.asarray(1.0), jnp.asarray(0)
     init = dict(i=zero, state=state0, t=jnp.asarray(t0, float), h=jnp.clip(h0, ctrl.dtmin, ctrl.dtmax),
-                v=jnp.where(use_v0, v0, v_state0), tan=empty_tangent(scheme, scene, solver), frames=frames,
+                v=jnp.where(use_v0, v0, v_state0), vm=v_state0, tan=empty_tangent(scheme, scene, solver), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
                 status=jnp.asarray(RUNNING), err1=one, err2=one, its=zero, kits=zero, chord=zero, rej=zero,
                 attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))

@@ -28,12 +28,14 @@ evolution law is evaluated at eG's assumed strains (interpolated through the tim
 as its flow rule sees them), not at the strains of the interior positions: those carry
 the same shortening, and measured against the true local error the internal-variable
 estimate of eG(1) then overestimated 18-40 times (rtol = 1e-3), its position estimate
-0.7-1.2 times.
+0.7-1.2 times. The interpolant through the nodes alone (degree k) under-stated instead,
+by up to 5x: it misses its own interpolation error, which eG's flow rule does see; the
+strain path also follows the strain rates at the step's two ends (`strain_path_matrices`).
 
 The defect's integral is taken of the interpolant of the evolution rate at $k + 2$ Gauss
-points of the step (and exactly for $\int p_h$) and checked at those points: $k + 2$
-mass solves and evaluations of the evolution law, against some 60 residual evaluations
-of a step.
+points of the step (and exactly for $\int p_h$) and checked at those points: $k + 4$
+mass solves (two for the end rates) and $k + 2$ evaluations of the evolution law,
+against some 60 residual evaluations of a step.
 """
 
 import functools
@@ -43,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fem._quadrature import gauss_legendre
-from .._fem._tensor import right_cauchy_green, sym_to_vec, vec_to_sym
+from .._fem._tensor import mm, right_cauchy_green, sym_to_vec, vec_to_sym
 from ._step import increments, momenta
 from ._time_basis import lagrange, lobatto_nodes
 
@@ -64,6 +66,31 @@ def defect_matrices(k):
     return sigma, V, A, B
 
 
+@functools.lru_cache(maxsize=None)
+def strain_path_matrices(k):
+    """eG's strain path for the internal-variable defect at the check points: the
+    polynomial of degree k + 2 through the strains at the k + 1 time nodes with the strain
+    rates at both ends of the step, as values `Hv` (q, k+1) and end-rate weights `Hd`
+    (q, 2) (rates as d/dsigma).
+
+    Why the rates: eG's flow rule sees the strains interpolated through its nodes (degree
+    k), whose interpolation error inside the step is part of the internal variable's true
+    error. Measured against the true local error (2D L-shape, steps of adaptive runs, as
+    `benchmarks/adaptive_effectivity.py`), the internal-variable estimate with the degree-k
+    interpolant under-stated by up to 5x (effectivity 0.20 at eG(3)'s first step, 0.34 at
+    t = 2.95; 0.61 at eG(1)'s first step), with the end rates 0.74, 0.43 and 1.02. The rates
+    at the ends come from the momenta there, which are the accurate ones (p_n given,
+    p_{n+1} superconvergent); the interior nodes' momenta are not used."""
+    nodes = np.asarray(lobatto_nodes(k), dtype=float)
+    sigma = defect_matrices(k)[0]
+    ends = nodes[[0, -1]]
+    powers = np.arange(k + 3)
+    rows = np.concatenate([nodes[:, None] ** powers,
+                           powers * ends[:, None] ** np.maximum(powers - 1, 0)])
+    H = (np.asarray(sigma)[:, None] ** powers) @ np.linalg.inv(rows)
+    return H[:, : k + 1], H[:, k + 1:]
+
+
 def nodal_values(scheme, scene, ctx, U):
     """The step's polynomial at its k + 1 time nodes: position increments (k+1, n, d),
     momenta (k+1, n, d) and internal variables (k+1, n_cells, nq, 3, 3) or None."""
@@ -73,9 +100,19 @@ def nodal_values(scheme, scene, ctx, U):
     return X, P, G
 
 
-def defects(scheme, scene, ctx, U):
+def uses_end_velocities(scheme, scene, state):
+    """Whether `defects` follows the strain rates at the step's ends, from the velocities
+    $M^{-1}p$ there: eG with an internal variable on a free body. (With held nodes the
+    momenta's velocities are not the held nodes' motion: there the strain path is the
+    interpolant through the nodes.)"""
+    return scheme.enhanced and scene.fixed is None and state.gamma is not None
+
+
+def defects(scheme, scene, ctx, U, end_velocities=None):
     """Integral defects at the k + 2 check points: positions (q, n, d) and internal
-    variable (q, n_cells, nq, 6; None without one)."""
+    variable (q, n_cells, nq, 6; None without one). `end_velocities`: $M^{-1}p$ at the
+    step's start and end where the caller has them (`uses_end_velocities`), else they
+    are solved for here."""
     sigma, V, A, B = (jnp.asarray(a) for a in defect_matrices(scheme.k))
     X, P, G = nodal_values(scheme, scene, ctx, U)
     h = ctx.h
@@ -86,9 +123,24 @@ def defects(scheme, scene, ctx, U):
     Gs = jnp.einsum("cI,I...->c...", V, G)
 
     if scheme.enhanced:
-        # eG drives the flow with its assumed strains, interpolated through the nodes.
-        CI = jax.vmap(lambda dx: right_cauchy_green(scene.disc.deformation_gradient(ctx.state.x + dx)))(X)
-        Cs = jnp.einsum("cI,I...->c...", V, CI)
+        # eG drives the flow with strains interpolated through the nodes: here through the
+        # nodal strains and, on a free body, the strain rates at the step's two ends
+        # (`strain_path_matrices`).
+        disc = scene.disc
+        F = jax.vmap(lambda dx: disc.deformation_gradient(ctx.state.x + dx))(X)
+        CI = right_cauchy_green(F)
+        if uses_end_velocities(scheme, scene, ctx.state):
+            if end_velocities is None:
+                # (a rate enters only the small difference from the nodal interpolant)
+                end_velocities = jax.vmap(lambda p: scene.velocity(p, rtol=1e-10))(jnp.stack([P[0], P[-1]]))
+            Fd = disc.gradient(jnp.stack(end_velocities))
+            FF = jnp.stack([F[0], F[-1]])
+            Cd = mm(jnp.swapaxes(FF, -1, -2), Fd)
+            Cd = h * (Cd + jnp.swapaxes(Cd, -1, -2))  # dC/dsigma = h dC/dt at sigma = 0 and 1
+            Hv, Hd = (jnp.asarray(a) for a in strain_path_matrices(scheme.k))
+            Cs = jnp.einsum("cI,I...->c...", Hv, CI) + jnp.einsum("cE,E...->c...", Hd, Cd)
+        else:
+            Cs = jnp.einsum("cI,I...->c...", V, CI)
     else:
         Cs = jax.vmap(lambda dx: right_cauchy_green(scene.disc.deformation_gradient(ctx.state.x + dx)))(Xs)
     gdot = jax.vmap(lambda C, g: sym_to_vec(scene.map_points(lambda m, c, gg: m.gamma_rate(c, gg), C, g)))(Cs, Gs)
@@ -100,7 +152,7 @@ def _rms(a, axes):
     return jnp.sqrt(jnp.mean(a * a, axis=axes))
 
 
-def scaled_error(scheme, scene, ctx, U, new, rtol, atol):
+def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None):
     """The step's error estimate in units of the tolerance (accept where <= 1): per group
     (positions, internal variable) the root mean square of the defect over the body,
     divided by that group's `atol * a + rtol * scale`, maximal over the check points and
@@ -115,7 +167,7 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol):
     3e-4) uncontrolled: the dissipated energy at t = 2 was off by 230-800 times rtol = atol
     (eG(1)), 23-27 times with this scale
     (`benchmarks/adaptive_proportionality.py`)."""
-    e_x, e_g = defects(scheme, scene, ctx, U)
+    e_x, e_g = defects(scheme, scene, ctx, U, end_velocities)
     x = new.x - jnp.mean(new.x, axis=0)
     sx = atol + rtol * _rms(x, None)
     err = jnp.max(_rms(e_x, (1, 2))) / sx
