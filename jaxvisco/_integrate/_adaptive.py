@@ -19,7 +19,7 @@ from .._config import jit
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
 from .._time_element._estimate import dense_state, scaled_error, uses_end_velocities
-from .._time_element._step import make_context, predictor, step_outcome
+from .._time_element._step import end_state, make_context, predictor, step_outcome
 from ._differentiable import (
     differentiate,
     empty_record,
@@ -113,13 +113,12 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         t_next = jnp.where(last, t1, t + h_try)
         ctx = make_context(scene, c["state"], t, h_try)
         r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
-        new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True)
-        if rates:  # M^{-1}p at the step's ends for the estimate; the end's is carried to the next step
-            vm_end = scene.velocity(new.p, rtol=1e-10)
-            err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol, (c["vm"], vm_end))
-        else:
-            vm_end = c["vm"]
-            err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol)
+        # M^{-1}p at the step's ends for the estimate (the end's also for the predictor's
+        # velocity, and carried to the next step as its start's: one mass solve a step)
+        vm_end = scene.velocity(end_state(scheme, scene, ctx, r.U).p, rtol=1e-10) if rates else c["vm"]
+        new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True,
+                                            velocity=vm_end if rates else None)
+        err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol, (c["vm"], vm_end) if rates else None)
         err = jnp.where(ok & jnp.isfinite(err), err, jnp.inf)
         at_min = h_try <= ctrl.dtmin * (1.0 + 1e-12)
         accept = ok & ((err <= 1.0) | at_min)

@@ -28,13 +28,15 @@ evolution law is evaluated at eG's assumed strains (interpolated through the tim
 as its flow rule sees them), not at the strains of the interior positions: those carry
 the same shortening, and measured against the true local error the internal-variable
 estimate of eG(1) then overestimated 18-40 times (rtol = 1e-3), its position estimate
-0.7-1.2 times. The interpolant through the nodes alone (degree k) under-stated instead,
-by up to 5x: it misses its own interpolation error, which eG's flow rule does see; the
-strain path also follows the strain rates at the step's two ends (`strain_path_matrices`).
+0.7-1.2 times. The interpolant through the nodes alone (degree k) under-stated instead
+for k >= 2, by up to 5x: it misses its own interpolation error, which eG's flow rule
+does see; there the strain path also follows the strain rates at the step's two ends
+(`strain_path_matrices`).
 
 The defect's integral is taken of the interpolant of the evolution rate at $k + 2$ Gauss
-points of the step (and exactly for $\int p_h$) and checked at those points: $k + 4$
-mass solves (two for the end rates) and $k + 2$ evaluations of the evolution law,
+points of the step (and exactly for $\int p_h$) and checked at those points: $k + 2$
+mass solves (and the end velocities, which the adaptive loop has) and $k + 2$
+evaluations of the evolution law,
 against some 60 residual evaluations of a step.
 """
 
@@ -75,12 +77,16 @@ def strain_path_matrices(k):
 
     Why the rates: eG's flow rule sees the strains interpolated through its nodes (degree
     k), whose interpolation error inside the step is part of the internal variable's true
-    error. Measured against the true local error (2D L-shape, steps of adaptive runs, as
+    error. Measured against the true local error (2D L-shape, as
     `benchmarks/adaptive_effectivity.py`), the internal-variable estimate with the degree-k
-    interpolant under-stated by up to 5x (effectivity 0.20 at eG(3)'s first step, 0.34 at
-    t = 2.95; 0.61 at eG(1)'s first step), with the end rates 0.74, 0.43 and 1.02. The rates
-    at the ends come from the momenta there, which are the accurate ones (p_n given,
-    p_{n+1} superconvergent); the interior nodes' momenta are not used."""
+    interpolant under-stated by up to 5x: effectivity 0.20 at eG(3)'s first step (h = 0.1),
+    0.34 at t = 2.95, 0.31 at t = 40; eG(2) 0.40 at its first step, 0.28-0.33 at t = 40;
+    with the end rates 0.74, 0.43, 0.81; 2.0, 0.84-1.05. The rates at the ends come from
+    the momenta there, which are the accurate ones for k >= 2 (p_n given, p_{n+1}
+    superconvergent, O(h^2k)); the interior nodes' momenta are not used. Not for eG(1):
+    its p_{n+1} is second-order, the order of the interpolation error itself, and on the
+    rotating body at t = 40 the rates made its estimate 2.7-5.0 times the true error
+    (0.95-1.09 without; 0.61-1.21 over the runs of the effectivity benchmark)."""
     nodes = np.asarray(lobatto_nodes(k), dtype=float)
     sigma = defect_matrices(k)[0]
     ends = nodes[[0, -1]]
@@ -102,10 +108,12 @@ def nodal_values(scheme, scene, ctx, U):
 
 def uses_end_velocities(scheme, scene, state):
     """Whether `defects` follows the strain rates at the step's ends, from the velocities
-    $M^{-1}p$ there: eG with an internal variable on a free body. (With held nodes the
-    momenta's velocities are not the held nodes' motion: there the strain path is the
-    interpolant through the nodes.)"""
-    return scheme.enhanced and scene.fixed is None and state.gamma is not None
+    $M^{-1}p$ there: eG(k), k >= 2, with an internal variable on a free body. (With held
+    nodes the momenta's velocities are not the held nodes' motion; eG(1)'s end momenta
+    are accurate to second order only, the order of the interpolation error the rates
+    are to add: see `strain_path_matrices`. There the strain path is the interpolant
+    through the nodes.)"""
+    return scheme.enhanced and scheme.k >= 2 and scene.fixed is None and state.gamma is not None
 
 
 def defects(scheme, scene, ctx, U, end_velocities=None):

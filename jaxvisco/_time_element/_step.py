@@ -211,7 +211,7 @@ def end_velocity(scheme, ctx, U):
     return jnp.einsum("I,Ind->nd", jnp.asarray(m["D_end"]), increments(ctx, U)) / ctx.h
 
 
-def next_velocity(scheme, scene, ctx, U, new):
+def next_velocity(scheme, scene, ctx, U, new, velocity=None):
     r"""The velocity the next step's predictor moves the body with (`Solution.end_velocity`).
 
     Where nodes are held, the position polynomial's end velocity (`end_velocity`). A
@@ -234,10 +234,12 @@ def next_velocity(scheme, scene, ctx, U, new):
     M^{-1}p and the exact angle, by 0.11 with the scheme's angle, and by 0.037 with this
     velocity (0.030 with no deformation velocity at all); at h = 0.1 by 1.3e-2 (end
     velocity) and 4.5e-3 (this one). At h = 0.003 the deformation velocity in full saved
-    20 % of the chord iterations against none; the share keeps both regimes."""
+    20 % of the chord iterations against none; the share keeps both regimes.
+
+    `velocity`: $M^{-1}p_{n+1}$ where the caller has solved for it already."""
     if scene.fixed is not None:
         return end_velocity(scheme, ctx, U)
-    v = scene.velocity(new.p, rtol=1e-10)
+    v = scene.velocity(new.p, rtol=1e-10) if velocity is None else velocity
     rigid = _rigid_fit(new.x, v)[3]
     u = v - rigid
     mean = (new.x - ctx.state.x) / ctx.h
@@ -369,12 +371,13 @@ def predictor(scheme, scene, ctx, velocity) -> Unknowns:
     return Unknowns(x, g)
 
 
-def step_outcome(scheme, scene, ctx, r, dissipation_of_solve=False):
+def step_outcome(scheme, scene, ctx, r, dissipation_of_solve=False, velocity=None):
     """What a solved step yields: end state, dissipation, external work, end velocity,
     and whether it is acceptable (Newton converged and every value finite).
     `dissipation_of_solve`: take the dissipation that the solve evaluated with its last
     residual (`NewtonResult.dissipation`, where there is one) instead of evaluating it
-    again; not differentiable (the loops whose derivative replays their steps)."""
+    again; not differentiable (the loops whose derivative replays their steps).
+    `velocity`: $M^{-1}p_{n+1}$ where the caller has it (`next_velocity`)."""
     new = end_state(scheme, scene, ctx, r.U)
     if dissipation_of_solve and r.dissipation is not None:
         D = r.dissipation
@@ -384,4 +387,4 @@ def step_outcome(scheme, scene, ctx, r, dissipation_of_solve=False):
     finite = jnp.all(jnp.isfinite(new.x)) & jnp.all(jnp.isfinite(new.p)) & jnp.isfinite(D)
     if new.gamma is not None:
         finite = finite & jnp.all(jnp.isfinite(new.gamma))
-    return new, D, W, next_velocity(scheme, scene, ctx, r.U, new), r.converged & finite
+    return new, D, W, next_velocity(scheme, scene, ctx, r.U, new, velocity), r.converged & finite
