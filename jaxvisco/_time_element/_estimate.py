@@ -36,8 +36,7 @@ does see; there the strain path also follows the strain rates at the step's two 
 The defect's integral is taken of the interpolant of the evolution rate at $k + 2$ Gauss
 points of the step (and exactly for $\int p_h$) and checked at those points: $k + 2$
 mass solves (and the end velocities, which the adaptive loop has) and $k + 2$
-evaluations of the evolution law,
-against some 60 residual evaluations of a step.
+evaluations of the evolution law, against some 60 residual evaluations of a step.
 """
 
 import functools
@@ -86,7 +85,7 @@ def strain_path_matrices(k):
     superconvergent, O(h^2k)); the interior nodes' momenta are not used. Not for eG(1):
     its p_{n+1} is second-order, the order of the interpolation error itself, and on the
     rotating body at t = 40 the rates made its estimate 2.7-5.0 times the true error
-    (0.95-1.09 without; 0.61-1.21 over the runs of the effectivity benchmark)."""
+    (0.95-1.09 without; 0.59-1.30 over the runs of the effectivity benchmark)."""
     nodes = np.asarray(lobatto_nodes(k), dtype=float)
     sigma = defect_matrices(k)[0]
     ends = nodes[[0, -1]]
@@ -132,8 +131,8 @@ def defects(scheme, scene, ctx, U, end_velocities=None):
 
     if scheme.enhanced:
         # eG drives the flow with strains interpolated through the nodes: here through the
-        # nodal strains and, on a free body, the strain rates at the step's two ends
-        # (`strain_path_matrices`).
+        # nodal strains and, for k >= 2 on a free body, the strain rates at the step's two
+        # ends (`strain_path_matrices`).
         disc = scene.disc
         F = jax.vmap(lambda dx: disc.deformation_gradient(ctx.state.x + dx))(X)
         CI = right_cauchy_green(F)
