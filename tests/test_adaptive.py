@@ -55,14 +55,28 @@ def test_identities_hold_at_every_accepted_step(lshape, k):
 
 
 @jax.jit
-def _estimated_and_interior(scene, state, t, h, v):
-    scheme = jv.eG(1)
+def _estimated_and_interior(scheme, scene, state, t, h, v):
+    """One step of `scheme` from `state`: converged, its estimated defects and its
+    polynomial at the check points."""
     ctx = make_context(scene, state, t, h)
     r = solve_step(TIGHT, scheme, scene, ctx, predictor(scheme, scene, ctx, v), empty_tangent(scheme, scene))
     e_x, e_g = defects(scheme, scene, ctx, r.U)
-    sigma = jnp.asarray(defect_matrices(1)[0])
+    sigma = jnp.asarray(defect_matrices(scheme.k)[0])
     states = jax.vmap(lambda s: dense_state(scheme, scene, ctx, r.U, s))(sigma)
     return step_outcome(scheme, scene, ctx, r)[-1], e_x, e_g, states
+
+
+def _reference_at_check_points(scene, scheme, ref_scheme, state, v, t, h, m):
+    """`ref_scheme` from `state` with m sub-steps between consecutive check points of
+    `scheme`'s step [t, t + h]: positions and internal variable (Voigt) there."""
+    sigma = defect_matrices(scheme.k)[0]
+    knots = np.concatenate([[0.0], sigma])
+    ts = np.concatenate([t + h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(m) / m)
+                         for i in range(len(sigma))] + [[t + h * sigma[-1]]])
+    ref = jv.simulate(scene, ref_scheme, stepsize_controller=jv.StepTo(ts), saveat=jv.SaveAt(gamma=True),
+                      initial_state=state, initial_velocity=v, solver=TIGHT)
+    idx = m * np.arange(1, len(sigma) + 1)
+    return np.asarray(ref.x)[idx], np.asarray(jv._fem._tensor.sym_to_vec(ref.gamma))[idx]
 
 
 @pytest.mark.timeout(600)
@@ -75,23 +89,15 @@ def test_estimate_matches_true_local_error(lshape):
     # Capacity 96: the reference runs below (72 steps) get 96 by default, so all of them
     # and this one share one compiled program.
     run = jv.simulate(lshape, jv.eG(1), t1=4.0, dt0=0.1, saveat=jv.SaveAt(gamma=True), solver=TIGHT, max_steps=96)
-    sigma = defect_matrices(1)[0]
-    knots = np.concatenate([[0.0], sigma])
     for frame in (0, 30):
         state, t = run.state(frame), float(run.t[frame])
         v = lshape.velocity(state.p)
         for h in (0.1, 0.2):
-            ok, e_x, e_g, states = _estimated_and_interior(lshape, state, jnp.asarray(t), jnp.asarray(h), v)
+            ok, e_x, e_g, states = _estimated_and_interior(jv.eG(1), lshape, state, jnp.asarray(t), jnp.asarray(h), v)
             assert ok
-            m = 24
-            ts = np.concatenate([t + h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(m) / m)
-                                 for i in range(len(sigma))] + [[t + h * sigma[-1]]])
-            ref = jv.simulate(lshape, jv.eG(1), stepsize_controller=jv.StepTo(ts), saveat=jv.SaveAt(gamma=True),
-                              initial_state=state, initial_velocity=v, solver=TIGHT)
-            idx = m * np.arange(1, len(sigma) + 1)
-            true_x = np.asarray(states.x) - np.asarray(ref.x)[idx]
-            true_g = np.asarray(jv._fem._tensor.sym_to_vec(states.gamma)) - np.asarray(
-                jv._fem._tensor.sym_to_vec(ref.gamma))[idx]
+            x_ref, g_ref = _reference_at_check_points(lshape, jv.eG(1), jv.eG(1), state, v, t, h, 24)
+            true_x = np.asarray(states.x) - x_ref
+            true_g = np.asarray(jv._fem._tensor.sym_to_vec(states.gamma)) - g_ref
             eff_x = max(_rms(e) for e in e_x) / max(_rms(e) for e in true_x)
             eff_g = max(_rms(e) for e in e_g) / max(_rms(e) for e in true_g)
             assert 0.3 <= eff_x <= 3.0, (frame, h, eff_x)
@@ -110,21 +116,10 @@ def test_internal_variable_estimate_at_the_first_step(lshape, k):
     scheme, h = jv.eG(k), 0.1
     state = lshape.initial_state()
     v = lshape.velocity(state.p)
-    ctx = make_context(lshape, state, jnp.asarray(0.0), jnp.asarray(h))
-    r = jax.jit(lambda c, U0: solve_step(TIGHT, scheme, lshape, c, U0, empty_tangent(scheme, lshape)))(
-        ctx, predictor(scheme, lshape, ctx, v))
-    assert bool(r.converged)
-    _, e_g = defects(scheme, lshape, ctx, r.U)
-    sigma = defect_matrices(k)[0]
-    g = np.asarray(jv._fem._tensor.sym_to_vec(jax.vmap(lambda s: dense_state(scheme, lshape, ctx, r.U, s).gamma)(
-        jnp.asarray(sigma))))
-    m = 16
-    knots = np.concatenate([[0.0], sigma])
-    ts = np.concatenate([h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(m) / m)
-                         for i in range(len(sigma))] + [[h * sigma[-1]]])
-    ref = jv.simulate(lshape, jv.cG(3), stepsize_controller=jv.StepTo(ts), saveat=jv.SaveAt(gamma=True),
-                      initial_state=state, initial_velocity=v, solver=TIGHT)
-    true_g = g - np.asarray(jv._fem._tensor.sym_to_vec(ref.gamma))[m * np.arange(1, len(sigma) + 1)]
+    ok, _, e_g, states = _estimated_and_interior(scheme, lshape, state, jnp.asarray(0.0), jnp.asarray(h), v)
+    assert ok
+    _, g_ref = _reference_at_check_points(lshape, scheme, jv.cG(3), state, v, 0.0, h, 16)
+    true_g = np.asarray(jv._fem._tensor.sym_to_vec(states.gamma)) - g_ref
     eff = max(_rms(e) for e in np.asarray(e_g)) / max(_rms(e) for e in true_g)
     assert 0.3 <= eff <= 3.0, eff
 
