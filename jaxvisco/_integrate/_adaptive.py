@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from .._config import jit
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
-from .._time_element._estimate import dense_state, scaled_error, uses_end_velocities
+from .._time_element._estimate import body_strain, dense_state, scaled_error, uses_end_velocities
 from .._time_element._step import end_state, make_context, predictor, step_outcome
 from ._differentiable import (
     differentiate,
@@ -118,7 +118,8 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         vm_end = scene.velocity(end_state(scheme, scene, ctx, r.U).p, rtol=1e-10) if rates else c["vm"]
         new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True,
                                             velocity=vm_end if rates else None)
-        err = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol, (c["vm"], vm_end) if rates else None)
+        err, strain = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol,
+                                   (c["vm"], vm_end) if rates else None, c["strain"])
         err = jnp.where(ok & jnp.isfinite(err), err, jnp.inf)
         at_min = h_try <= ctrl.dtmin * (1.0 + 1e-12)
         accept = ok & ((err <= 1.0) | at_min)
@@ -159,31 +160,36 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                          residual=s["residual"].at[i].set(r.residual),
                          rejections=s["rejections"].at[i].set(c["rej"]))
             return dict(i=i + 1, state=new, t=t_next, v=v_end, vm=vm_end, frames=frames, steps=steps, n_saved=n_saved,
-                        dissipated=dissipated, work=work, err1=err, err2=c["err1"], its=jnp.asarray(0),
-                        kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0), rec=rec)
+                        dissipated=dissipated, work=work, err1=err, err2=c["err1"],
+                        strain=jnp.maximum(c["strain"], strain), its=jnp.asarray(0), kits=jnp.asarray(0),
+                        chord=jnp.asarray(0), rej=jnp.asarray(0), rec=rec)
 
         def on_reject(c):
             return dict(i=i, state=c["state"], t=t, v=c["v"], vm=c["vm"], frames=c["frames"], steps=c["steps"],
                         n_saved=c["n_saved"], dissipated=c["dissipated"], work=c["work"], err1=c["err1"],
-                        err2=c["err2"], its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations,
-                        chord=c["chord"] + r.chord_iterations, rej=c["rej"] + 1, rec=c["rec"])
+                        err2=c["err2"], strain=c["strain"], its=c["its"] + r.iterations,
+                        kits=c["kits"] + r.krylov_iterations, chord=c["chord"] + r.chord_iterations, rej=c["rej"] + 1,
+                        rec=c["rec"])
 
-        keys = ("i", "state", "t", "v", "vm", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2", "its",
-                "kits", "chord", "rej")
+        keys = ("i", "state", "t", "v", "vm", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2",
+                "strain", "its", "kits", "chord", "rej")
         out = jax.lax.cond(accept, on_accept, on_reject, dict({k: c[k] for k in keys}, rec=rec))
         out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1)
         return out
 
     zf, zi = jnp.zeros(capacity), jnp.zeros(capacity, dtype=int)
+    # the largest strain of the run so far: the unit of atol on the internal variable
+    strain0 = jnp.maximum(ctrl.strain_scale, body_strain(scene, state0.x) if state0.gamma is not None else 0.0)
     steps = dict(step_t=zf, step_h=zf, newton_iterations=zi, krylov_iterations=zi, chord_iterations=zi,
                  residual=zf, rejections=zi)
     one, zero = jnp.asarray(1.0), jnp.asarray(0)
     init = dict(i=zero, state=state0, t=jnp.asarray(t0, float), h=jnp.clip(h0, ctrl.dtmin, ctrl.dtmax),
                 v=jnp.where(use_v0, v0, v_state0), vm=v_state0, tan=empty_tangent(scheme, scene, solver), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
-                status=jnp.asarray(RUNNING), err1=one, err2=one, its=zero, kits=zero, chord=zero, rej=zero,
-                attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))
+                status=jnp.asarray(RUNNING), err1=one, err2=one, strain=strain0, its=zero, kits=zero, chord=zero,
+                rej=zero, attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))
     c = jax.lax.while_loop(cond, body, init)
     status = jnp.where(c["status"] == RUNNING, FAILED, c["status"])  # attempts exhausted
     return Solution(**frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["i"], status_code=status,
-                    integrator=scheme.describe(), end_velocity=c["v"], **c["steps"]), c["h"], c["rec"]
+                    integrator=scheme.describe(), end_velocity=c["v"], strain_scale=c["strain"], **c["steps"]), \
+        c["h"], c["rec"]

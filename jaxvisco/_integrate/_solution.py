@@ -65,6 +65,7 @@ class Solution(eqx.Module):
     status_code: jax.Array
     integrator: str = eqx.field(static=True, default="")
     end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
+    strain_scale: jax.Array | None = None  # adaptive runs: the largest strain reached (restarts: PIDController)
 
     @property
     def status(self):

@@ -13,6 +13,7 @@ compiled program.
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -50,7 +51,17 @@ class PIDController(AbstractStepSizeController):
     **Arguments:** `rtol`, `atol` (> 0 together: at least one positive);
     `dtmin` (0), `dtmax` (inf); `pcoeff` (0.2), `icoeff` (0.4), `dcoeff` (0); `safety` (0.9);
     `factormin` (0.2), `factormax` (10); `keep_band` (1.2: keep h where the proposed
-    factor lies in ``[1, keep_band]``; 1 disables it).
+    factor lies in ``[1, keep_band]``; 1 disables it); `strain_scale` (0): the least
+    strain that `atol` on the internal variable is measured in (see below).
+
+    The internal variable Γ is a strain: its tolerance is ``atol * a + rtol * |Γ - I|``
+    (root mean squares over the body), where ``a`` is the largest strain ``|C - I|``
+    the run has reached so far, from its initial state on, and at least `strain_scale`.
+    A body that comes to rest thereby keeps the tolerance of its largest deformation and
+    its steps grow (measured against the strain of the moment, they kept the size of its
+    vibrations: `benchmarks/adaptive_relaxation.py`). A run continued from another's end
+    state (in chunks, as the ``jaxvisco`` command runs) passes the earlier run's
+    `Solution.strain_scale` here to keep the same tolerance.
 
     The default coefficients differ from diffrax's integral controller (0, 1), by
     measurement (paper's 2D L-shape to t = 10, eG(1..3), rtol = atol = 1e-3 and 1e-5,
@@ -76,9 +87,10 @@ class PIDController(AbstractStepSizeController):
     factormin: jax.Array
     factormax: jax.Array
     keep_band: jax.Array
+    strain_scale: jax.Array
 
     def __init__(self, rtol, atol, dtmin=0.0, dtmax=math.inf, pcoeff=0.2, icoeff=0.4, dcoeff=0.0, safety=0.9,
-                 factormin=0.2, factormax=10.0, keep_band=1.2):
+                 factormin=0.2, factormax=10.0, keep_band=1.2, strain_scale=0.0):
         rtol = _positive("rtol", rtol, allow_zero=True)
         atol = _positive("atol", atol, allow_zero=True)
         if rtol == 0 and atol == 0:
@@ -101,10 +113,17 @@ class PIDController(AbstractStepSizeController):
         keep_band = _positive("keep_band", keep_band)
         if not 1 <= keep_band <= factormax:
             raise ValueError(f"PIDController: keep_band must be in [1, factormax], got {keep_band!r}.")
+        strain_scale = _positive("strain_scale", strain_scale, allow_zero=True)
         f = lambda v: jnp.asarray(v, dtype=jnp.float64)  # noqa: E731
         self.rtol, self.atol, self.dtmin, self.dtmax = f(rtol), f(atol), f(dtmin), f(dtmax)
         self.pcoeff, self.icoeff, self.dcoeff = f(pcoeff), f(icoeff), f(dcoeff)
         self.safety, self.factormin, self.factormax, self.keep_band = f(safety), f(factormin), f(factormax), f(keep_band)
+        self.strain_scale = f(strain_scale)
+
+    def continued(self, strain):
+        """This controller for a run that continues one whose largest strain was `strain`
+        (its `Solution.strain_scale`): `strain_scale` at least that."""
+        return eqx.tree_at(lambda c: c.strain_scale, self, jnp.maximum(self.strain_scale, jnp.asarray(strain, float)))
 
     def accepted_factor(self, order, err, err1, err2):
         """Step growth after an accepted step with errors `err` (this), `err1`, `err2`

@@ -41,6 +41,7 @@ evaluations of the evolution law, against some 60 residual evaluations of a step
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -159,11 +160,12 @@ def _rms(a, axes):
     return jnp.sqrt(jnp.mean(a * a, axis=axes))
 
 
-def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None):
+def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None, strain_scale=0.0):
     """The step's error estimate in units of the tolerance (accept where <= 1): per group
     (positions, internal variable) the root mean square of the defect over the body,
     divided by that group's `atol * a + rtol * scale`, maximal over the check points and
-    groups.
+    groups. Returns it and the strain of the step's end (`a` below, before the maximum
+    with `strain_scale`), which the loop carries as the run's largest.
 
     Positions: ``a = 1`` (`atol` is a length), the scale their distance from the
     centroid (a body's size, not its distance from the origin). Internal variable: the
@@ -173,18 +175,36 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None):
     before), a tolerance on Γ left the viscous strain of the paper's L-shape (|Γ - I| ≈
     3e-4) uncontrolled: the dissipated energy at t = 2 was off by 230-800 times rtol = atol
     (eG(1)), 23-27 times with this scale
-    (`benchmarks/adaptive_proportionality.py`)."""
+    (`benchmarks/adaptive_proportionality.py`). ``a`` is at least `strain_scale`, the
+    largest strain of the run so far (`PIDController.strain_scale`): measured against the
+    strain of the moment alone, the tolerance on Γ shrank with the strain, and a body that
+    comes to rest kept the step of its vibrations (`benchmarks/adaptive_relaxation.py`)."""
     e_x, e_g = defects(scheme, scene, ctx, U, end_velocities)
     x = new.x - jnp.mean(new.x, axis=0)
     sx = atol + rtol * _rms(x, None)
     err = jnp.max(_rms(e_x, (1, 2))) / sx
+    strain = jnp.asarray(0.0, err.dtype)
     if e_g is not None:
         eye = jnp.eye(3)
-        C = right_cauchy_green(scene.disc.deformation_gradient(new.x))
-        strain = jnp.maximum(_rms(sym_to_vec(C - eye), None), jnp.sqrt(jnp.finfo(C.dtype).eps))
-        sg = atol * strain + rtol * _rms(sym_to_vec(new.gamma - eye), None)
+        strain = body_strain(scene, new.x)
+        a = jnp.maximum(jnp.maximum(strain, strain_scale), jnp.sqrt(jnp.finfo(strain.dtype).eps))
+        sg = atol * a + rtol * _rms(sym_to_vec(new.gamma - eye), None)
         err = jnp.maximum(err, jnp.max(_rms(e_g, tuple(range(1, e_g.ndim)))) / sg)
-    return err
+    return err, strain
+
+
+def body_strain(scene, x):
+    """The body's strain at positions `x`: the root mean square of ``C - I`` over its
+    quadrature points (Voigt components)."""
+    C = right_cauchy_green(scene.disc.deformation_gradient(x))
+    return _rms(sym_to_vec(C - jnp.eye(3)), None)
+
+
+@eqx.filter_jit
+def largest_strain(scene, xs):
+    """The largest `body_strain` over positions `xs` (frames, n_nodes, dim): the
+    `PIDController.strain_scale` that continues a run whose frames these are."""
+    return jnp.max(jax.lax.map(lambda x: body_strain(scene, x), jnp.asarray(xs)))
 
 
 def step_polynomial(scheme, scene, ctx, U):

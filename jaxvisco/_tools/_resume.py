@@ -6,7 +6,9 @@ import warnings
 from .._integrate._saveat import SaveAt
 from .._integrate._simulate import simulate
 from .._integrate._solution import SolverError
-from .._io import ResultsWriter, read_restart
+from .._integrate._stepsize import PIDController
+from .._io import ResultsWriter, read_restart, read_results
+from .._time_element._estimate import largest_strain
 
 
 def resume(path, scene, integrator, t1=None, dt0=None, append=False, throw=True, **kwargs):
@@ -19,7 +21,9 @@ def resume(path, scene, integrator, t1=None, dt0=None, append=False, throw=True,
     Newton tolerance, because the reused tangent that preconditions it is not stored).
     `scene` and `integrator` must be those of the saved run (the file stores their
     parameters, not the objects); `dt0` and the other keywords (`stepsize_controller`,
-    `saveat`, `solver`, ...) go to `simulate` (a `Schedule` is in absolute times).
+    `saveat`, `solver`, ...) go to `simulate` (a `Schedule` is in absolute times; a
+    `PIDController` continues with the largest strain of the file's frames as its
+    `strain_scale`).
     `append=True` also appends the new frames and steps to the file (cumulative
     dissipation and external work continue) and sets its status.
 
@@ -43,6 +47,11 @@ def resume(path, scene, integrator, t1=None, dt0=None, append=False, throw=True,
     for k in ("t0", "initial_state", "initial_velocity"):
         if k in kwargs:
             raise TypeError(f"resume sets {k} from the results file; do not pass it.")
+    ctrl = kwargs.get("stepsize_controller")
+    if isinstance(ctrl, PIDController) and scene.has_internal_variable:
+        # atol on the internal variable in units of the largest strain so far, as in the
+        # uninterrupted run (`PIDController.strain_scale`): from the file's frames
+        kwargs["stepsize_controller"] = ctrl.continued(largest_strain(scene, read_results(path)["x"]))
     w = None
     if append:
         # the restart record needs the full internal variable

@@ -121,6 +121,8 @@ def run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=None, chu
         if ns:
             state, v, t, h = sol.state(-1), sol.end_velocity, float(np.asarray(sol.step_t)[-1]), \
                 float(np.asarray(sol.step_h)[-1])
+            # the next chunk measures atol on the internal variable in the same strain
+            controller = controller.continued(sol.strain_scale)
         if not quiet:
             print(f"{label}: t = {t:9.4f}  steps {n:6d} ({rejected} rejected)  h = {h if h else float('nan'):.4g}  "
                   f"newton/step {its.mean() if ns else 0:4.1f}  H = {float(np.asarray(sol.energy)[-1]):.8g}",
