@@ -3,11 +3,15 @@
 import os
 import warnings
 
+import numpy as np
+
 from .._integrate._saveat import SaveAt
 from .._integrate._simulate import simulate
 from .._integrate._solution import SolverError
 from .._integrate._stepsize import PIDController
-from .._io import ResultsWriter, read_restart, read_results
+from .._io import ResultsWriter, read_restart
+from .._io._layout import committed
+from .._io._read import open_results
 from .._time_element._estimate import largest_strain
 
 
@@ -51,7 +55,7 @@ def resume(path, scene, integrator, t1=None, dt0=None, append=False, throw=True,
     if isinstance(ctrl, PIDController) and scene.has_internal_variable:
         # atol on the internal variable in units of the largest strain so far, as in the
         # uninterrupted run (`PIDController.strain_scale`): from the file's frames
-        kwargs["stepsize_controller"] = ctrl.continued(largest_strain(scene, read_results(path)["x"]))
+        kwargs["stepsize_controller"] = ctrl.continued(largest_strain_in(path, scene))
     w = None
     if append:
         # the restart record needs the full internal variable
@@ -73,3 +77,19 @@ def resume(path, scene, integrator, t1=None, dt0=None, append=False, throw=True,
         raise SolverError(f"{integrator.name}: the step after t = {t:.6g} did not converge; the last good state is "
                           "attached (SolverError.state).", t, sol.state(-1), sol)
     return sol
+
+
+def largest_strain_in(path, scene, block=256):
+    """The largest strain (`_estimate.body_strain`) of the committed frames of the results
+    file `path`: the `PIDController.strain_scale` that continues its run. Reads the
+    positions `block` frames at a time (the last block padded with its last frame: one
+    compiled program)."""
+    with open_results(path) as f:
+        n = committed(f).n_frames
+        xs = f["nodal/x"]
+        largest = 0.0
+        for i in range(0, n, block):
+            x = np.asarray(xs[i:min(i + block, n)])
+            x = np.concatenate([x, np.repeat(x[-1:], block - len(x), axis=0)])
+            largest = max(largest, float(largest_strain(scene, x)))
+    return largest
