@@ -15,7 +15,7 @@ import argparse
 import time
 
 from common import RESULTS, jv, machine, write_json  # noqa: I001
-from adaptive_proportionality import errors, reference  # noqa: I001
+from adaptive_proportionality import Reference  # noqa: I001
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -31,7 +31,7 @@ def main():
     args = ap.parse_args()
     T = args.t_end
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    x_ref, d_ref = reference(scene, T, 0.005)
+    ref = Reference(scene, T, 0.005)
     rows = []
     for k in (1, 2, 3):
         def run(coeffs, tol):
@@ -50,7 +50,7 @@ def main():
                     walls[name].append(time.perf_counter() - t0)
             for name in CONFIGS:
                 sol = last[name]  # the runs are deterministic: the last timed one carries the counts
-                e_x, e_d = errors(np.asarray(sol.x[-1]), float(sol.dissipated[-1]), x_ref, d_ref)
+                e_x, e_d = (float(e[-1]) for e in ref.errors(sol))  # at the end
                 row = dict(scheme=f"eG({k})", tol=tol, coefficients=name, wall_s=float(np.median(walls[name])),
                            walls_s=walls[name], steps=int(sol.n_steps), rejected=int(np.sum(sol.rejections)),
                            newton=int(np.sum(sol.newton_iterations)), chord=int(np.sum(sol.chord_iterations)),
