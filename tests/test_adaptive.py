@@ -31,6 +31,18 @@ def _rms(a):
     return np.sqrt(np.mean(a * a))
 
 
+def _benchmark(name):
+    """A module of benchmarks/ (its scene and run helpers)."""
+    import importlib
+    import pathlib
+    import sys
+
+    path = str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks")
+    if path not in sys.path:
+        sys.path.insert(0, path)
+    return importlib.import_module(name)
+
+
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_identities_hold_at_every_accepted_step(lshape, k):
@@ -248,18 +260,6 @@ def test_a_body_coming_to_rest_takes_fewer_steps_than_the_constant_step():
     assert c_x > e_x, (n, m, e_x, c_x)
     h, ts = np.asarray(sol.step_h), np.asarray(sol.step_t)
     assert np.median(h[ts > 30.0]) >= 5.0 * np.median(h[ts < 2.0]), (np.median(h[ts < 2.0]), np.median(h[ts > 30.0]))
-
-
-def _benchmark(name):
-    """A module of benchmarks/ (its scene and run helpers)."""
-    import importlib
-    import pathlib
-    import sys
-
-    path = str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks")
-    if path not in sys.path:
-        sys.path.insert(0, path)
-    return importlib.import_module(name)
 
 
 @pytest.mark.timeout(600)

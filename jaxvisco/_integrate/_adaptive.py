@@ -115,9 +115,10 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         r = solve_step(solver, scheme, scene, ctx, predictor(scheme, scene, ctx, c["v"]), c["tan"])
         # M^{-1}p at the step's ends for the estimate (the end's also for the predictor's
         # velocity, and carried to the next step as its start's: one mass solve a step)
-        vm_end = scene.velocity(end_state(scheme, scene, ctx, r.U).p, rtol=1e-10) if rates else c["vm"]
+        new = end_state(scheme, scene, ctx, r.U)
+        vm_end = scene.velocity(new.p, rtol=1e-10) if rates else c["vm"]
         new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True,
-                                            velocity=vm_end if rates else None)
+                                            velocity=vm_end if rates else None, new=new)
         err, strain = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol,
                                    (c["vm"], vm_end) if rates else None, c["strain"])
         err = jnp.where(ok & jnp.isfinite(err), err, jnp.inf)

@@ -371,14 +371,15 @@ def predictor(scheme, scene, ctx, velocity) -> Unknowns:
     return Unknowns(x, g)
 
 
-def step_outcome(scheme, scene, ctx, r, dissipation_of_solve=False, velocity=None):
+def step_outcome(scheme, scene, ctx, r, dissipation_of_solve=False, velocity=None, new=None):
     """What a solved step yields: end state, dissipation, external work, end velocity,
     and whether it is acceptable (Newton converged and every value finite).
     `dissipation_of_solve`: take the dissipation that the solve evaluated with its last
     residual (`NewtonResult.dissipation`, where there is one) instead of evaluating it
     again; not differentiable (the loops whose derivative replays their steps).
-    `velocity`: $M^{-1}p_{n+1}$ where the caller has it (`next_velocity`)."""
-    new = end_state(scheme, scene, ctx, r.U)
+    `velocity`: $M^{-1}p_{n+1}$ where the caller has it (`next_velocity`); `new`: the
+    end state (`end_state`) where the caller has formed it."""
+    new = end_state(scheme, scene, ctx, r.U) if new is None else new
     if dissipation_of_solve and r.dissipation is not None:
         D = r.dissipation
     else:
