@@ -160,6 +160,16 @@ def _rms(a, axes):
     return jnp.sqrt(jnp.mean(a * a, axis=axes))
 
 
+# The internal variable's tolerance is at least this many units of rounding of Γ (|Γ| ≈ 1):
+# below it the estimate of a body that starts undeformed (|C - I| and |Γ - I| ~ 0, so
+# `atol * sqrt(eps)`) measured rounding, and the step shrank without end. Paper L-shape
+# from t = 0 without it: eG(3) at rtol = atol = 1e-9 and 1e-10 stopped at the first step
+# ("failed"), eG(2) at 1e-9 took 4000 steps of ~1e-6 to t < 0.01; with it (1, 4 or 16 ulps
+# all start) 447 / 803 / 1473 steps to t = 0.5. Runs with atol * sqrt(eps) above it
+# (atol >= 2.4e-7) are unchanged bit for bit.
+GAMMA_ROUNDING_ULPS = 16
+
+
 def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None, strain_scale=0.0):
     """The step's error estimate in units of the tolerance (accept where <= 1): per group
     (positions, internal variable) the root mean square of the defect over the body,
@@ -171,7 +181,8 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None, st
     centroid (a body's size, not its distance from the origin). Internal variable: the
     scale its distance from the virgin state ``Γ = I`` (the viscous strain), and `atol` in
     units of the body's strain ``a = |C - I|`` (root mean square over the points; at least
-    sqrt(eps)), the strain that Γ relaxes towards. Measured against ``|Γ| ≈ 1`` (as
+    sqrt(eps)), the strain that Γ relaxes towards; the whole at least
+    `GAMMA_ROUNDING_ULPS` units of rounding. Measured against ``|Γ| ≈ 1`` (as
     before), a tolerance on Γ left the viscous strain of the paper's L-shape (|Γ - I| ≈
     3e-4) uncontrolled: the dissipated energy at t = 2 was off by 230-800 times rtol = atol
     (eG(1)), 23-27 times with this scale
@@ -189,6 +200,7 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None, st
         strain = body_strain(scene, new.x)
         a = jnp.maximum(jnp.maximum(strain, strain_scale), jnp.sqrt(jnp.finfo(strain.dtype).eps))
         sg = atol * a + rtol * _rms(sym_to_vec(new.gamma - eye), None)
+        sg = jnp.maximum(sg, GAMMA_ROUNDING_ULPS * jnp.finfo(sg.dtype).eps)
         err = jnp.maximum(err, jnp.max(_rms(e_g, tuple(range(1, e_g.ndim)))) / sg)
     return err, strain
 
