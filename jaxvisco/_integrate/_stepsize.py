@@ -61,7 +61,10 @@ class PIDController(AbstractStepSizeController):
     its steps grow (measured against the strain of the moment, they kept the size of its
     vibrations: `benchmarks/adaptive_relaxation.py`). A run continued from another's end
     state (in chunks, as the ``jaxvisco`` command runs) passes the earlier run's
-    `Solution.strain_scale` here to keep the same tolerance.
+    `Solution.strain_scale` here to keep the same tolerance. The tolerance on Γ is never
+    below 16 units of its rounding (3.6e-15): a body that starts undeformed (``a`` and
+    ``|Γ - I|`` ~ 0) would otherwise be held to less than rounding at its first step
+    where atol < 2.4e-7 (at 1e-9 every step was rejected).
 
     The default coefficients differ from diffrax's integral controller (0, 1), by
     measurement (paper's 2D L-shape to t = 10, eG(1..3), rtol = atol = 1e-3 and 1e-5,
