@@ -93,3 +93,12 @@ def largest_strain_in(path, scene, block=256):
             x = np.concatenate([x, np.repeat(x[-1:], block - len(x), axis=0)])
             largest = max(largest, float(largest_strain(scene, x)))
     return largest
+
+
+def last_step_size(path):
+    """The size of the last committed step of the results file `path` (None if it has
+    none): the first step a continued adaptive run tries. Reads that one entry, not the
+    file's frames."""
+    with open_results(path) as f:
+        n = committed(f).n_steps
+        return float(f["steps/step_h"][n - 1]) if n and "steps/step_h" in f else None

@@ -88,7 +88,7 @@ def _continued_steps(args, restart, steps, t_end):
 def _run_adaptive(args, sf, restart):
     """`jaxvisco run` with error-controlled steps (--rtol/--atol)."""
     import jaxvisco as jv
-    from jaxvisco._tools._resume import largest_strain_in
+    from jaxvisco._tools._resume import largest_strain_in, last_step_size
 
     rtol = args.rtol if args.rtol is not None else args.atol
     atol = args.atol if args.atol is not None else rtol
@@ -104,8 +104,8 @@ def _run_adaptive(args, sf, restart):
             raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} (t_end = {t_end:.6g}); "
                              "give a later --t-end to continue it.")
         t0, state0, v0 = restart.t, restart.state, restart.velocity
-        h = jv.read_results(args.resume)["step_h"]
-        dt0 = float(h[-1]) if len(h) else dt0
+        h = last_step_size(args.resume)
+        dt0 = dt0 if h is None else h
         # atol on the internal variable in units of the largest strain so far, as the
         # run's chunks carried it (`PIDController.strain_scale`): from the stored frames
         controller = controller.continued(largest_strain_in(args.resume, scene))
