@@ -14,10 +14,11 @@ jaxvisco's own compiled programs (`jit`) are compiled with `compiler_options()`.
 
 import functools
 import os
+import threading
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
+import numpy as np
 
 from . import _export
 
@@ -90,8 +91,8 @@ _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_IND
 @functools.cache
 def compiler_options():
     """The XLA options jaxvisco compiles its programs with: those of the CPU options above
-    that this jaxlib knows (they are experimental or may go; each is probed on its own
-    and an unknown one is left out), none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's
+    that this jaxlib knows (they are experimental or may go; probed together, and one by
+    one where that fails: an unknown one is left out), none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's
     defaults). Call it outside any JAX transformation (JAX accepts compile options on
     top-level programs only).
 
@@ -103,14 +104,39 @@ def compiler_options():
     and 1.51 ms instead of 0.38 ms (refinement 4)."""
     if os.environ.get("JAXVISCO_XLA_OPTIONS", "").strip().lower() in ("off", "0", "none", "default"):
         return {}
-    known = {}
-    for key, value in _CPU_OPTIONS.items():
+    with _PROBE_LOCK:  # threads that start programs at once (`jaxvisco paper`) probe once
+        return dict(_probed_options())
+
+
+_PROBE_LOCK = threading.Lock()
+
+
+@functools.cache
+def _probed_options():
+    def known(options):
         try:
-            jax.jit(lambda x: x + 1.0, compiler_options={key: value})(jnp.zeros(()))
-        except Exception:  # noqa: BLE001 - an XLA that does not know the option
-            continue
-        known[key] = value
-    return known
+            jax.jit(lambda x: x + 1.0, compiler_options=options)(np.zeros(()))
+        except Exception:  # noqa: BLE001 - an XLA that does not know an option
+            return False
+        return True
+
+    # all at once first: one small program to compile where this jaxlib knows them all
+    if known(_CPU_OPTIONS):
+        return dict(_CPU_OPTIONS)
+    return {key: value for key, value in _CPU_OPTIONS.items() if known({key: value})}
+
+
+def device_array(value, dtype=None):
+    """`value` (a Python number, a NumPy array) as a JAX array, put on the device without a
+    compiled program; JAX arrays and tracers pass through (cast to `dtype` if given).
+
+    Why: `jnp.asarray` of a host value runs a small program (`lax.stage`) that XLA compiles
+    once per shape and dtype, 15-30 ms each. The arguments of a run and its trimmed results
+    are host values, so a cold first `simulate` call compiled ten of them besides the
+    time loop."""
+    if isinstance(value, jax.Array):
+        return value if dtype is None else value.astype(dtype)
+    return jax.device_put(np.asarray(value, dtype=dtype))
 
 
 def _top_level():

@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._config import device_array
 from ._fem._tensor import ddot, det3, dev, inv3, mm, sym
 from ._validation import check_positive
 
@@ -31,8 +32,8 @@ class NeoHooke(eqx.Module):
     def __init__(self, lam, mu):
         check_positive("NeoHooke lam", lam)
         check_positive("NeoHooke mu", mu)
-        self.lam = jnp.asarray(lam, dtype=float)
-        self.mu = jnp.asarray(mu, dtype=float)
+        self.lam = device_array(lam, float)
+        self.mu = device_array(mu, float)
 
     def __call__(self, C):
         return self.from_invariants(jnp.trace(C), 0.5 * jnp.log(det3(C)))
@@ -106,8 +107,8 @@ class ReeseGovindjee(eqx.Module):
         check_positive("eta_vol", eta_vol, allow_inf=True)
         self.equilibrium = equilibrium
         self.nonequilibrium = nonequilibrium
-        self.eta_dev = jnp.asarray(eta_dev, dtype=float)
-        self.eta_vol = jnp.asarray(eta_vol, dtype=float)
+        self.eta_dev = device_array(eta_dev, float)
+        self.eta_vol = device_array(eta_vol, float)
 
     @property
     def has_internal_variable(self) -> bool:

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._config import require_x64
+from ._config import device_array, require_x64
 from ._fem._krylov import mass_solve
 from ._fem._passes import POINTS_PER_PASS, map_in_passes
 from ._fem._space import Discretization, StaticArray
@@ -86,7 +86,7 @@ class Scene(eqx.Module):
         check_positive("density", density)
         self.mesh = mesh
         self.material = material
-        self.density = jnp.asarray(density, dtype=float)
+        self.density = device_array(density, float)
         if self.density.shape not in ((), (mesh.n_cells,)):
             raise ValueError(f"density must be one number or one per cell, shape ({mesh.n_cells},); got shape "
                              f"{self.density.shape}.")

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import require_x64
+from .._config import device_array, require_x64
 from ._elements import ElementType, element_type
 
 # Topological dimension of meshio cell types we may meet in files (to pick the blocks of
@@ -158,8 +158,8 @@ class Mesh(eqx.Module):
                     f"element {out[0]} has node indices {c[out[0]].tolist()} outside "
                     f"[0, {p_shape[0] - 1}]."
                 )
-        self.points = jnp.asarray(points, dtype=jnp.float64)
-        self.cells = jnp.asarray(cells, dtype=jnp.int32)
+        self.points = device_array(points, jnp.float64)
+        self.cells = device_array(cells, jnp.int32)
         self.cell_type = element.name
 
     @property
@@ -303,14 +303,14 @@ class Mesh(eqx.Module):
         """
         xi, w = self.element.quadrature(order)
         N, dN_dX, JxW = _quadrature_data(
-            self.cell_type, self.points, self.cells, jnp.asarray(xi), jnp.asarray(w)
+            self.cell_type, self.points, self.cells, device_array(xi), device_array(w)
         )
         return QuadratureData(N=N, dN_dX=dN_dX, JxW=JxW)
 
     def volume(self) -> jax.Array:
         """Total volume (area in 2D): sum of `|det J| w` over all quadrature points."""
         xi, w = self.element.quadrature()
-        return _volume(self.cell_type, self.points, self.cells, jnp.asarray(xi), jnp.asarray(w))
+        return _volume(self.cell_type, self.points, self.cells, device_array(xi), device_array(w))
 
     def validate(self, tol: float = 1e-8) -> "Mesh":
         """Check the mesh; return it unchanged or raise `ValueError` naming the culprit.

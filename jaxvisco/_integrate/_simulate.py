@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import _top_level, jit
+from .._config import _top_level, device_array, jit
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
 from .._solver._tangent import empty_tangent, multigrid_arguments, multigrid_scope
@@ -104,7 +104,7 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
     solver = _option("solver", solver, NewtonKrylov(), NewtonKrylov, "NewtonKrylov(...)")
     _check_order(t0, t1)
     state0, v0, use_v0 = _initial(scene, initial_state, initial_velocity)
-    eq_tol = None if event is None else jnp.asarray(float(event.tol))
+    eq_tol = None if event is None else device_array(float(event.tol))
     if isinstance(ctrl, PIDController):
         return _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solver, max_steps, throw,
                          state0, v0, use_v0)
@@ -121,8 +121,8 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
     elif _top_level():  # traced callers keep arrays of the run's length
         hs, te = _padded(hs, te, capacity(n_active))
     segment = _segment(record_size(len(hs)), saveat, adjoint)
-    sol = _run(scene, integrator, solver, state0, jnp.asarray(float(t0)), jnp.asarray(hs), jnp.asarray(te),
-               jnp.asarray(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment,
+    sol = _run(scene, integrator, solver, state0, device_array(float(t0)), device_array(hs), device_array(te),
+               device_array(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment,
                multigrid_arguments(integrator, scene, solver))
     return _finish(sol, integrator, ctrl.max_halvings, throw)
 
@@ -167,12 +167,12 @@ def _initial(scene, initial_state, initial_velocity):
             if a is not None:
                 check_finite(f"initial_state.{name}", a)
     if initial_velocity is None:
-        return state0, jnp.zeros_like(state0.p), jnp.asarray(False)
-    v0 = jnp.asarray(initial_velocity, dtype=state0.p.dtype)
+        return state0, device_array(np.zeros(np.shape(state0.p)), state0.p.dtype), device_array(False)
+    v0 = device_array(initial_velocity, state0.p.dtype)
     if v0.shape != state0.p.shape:
         raise ValueError(f"initial_velocity must have shape {state0.p.shape}, got {v0.shape}.")
     check_finite("initial_velocity", v0)
-    return state0, v0, jnp.asarray(True)
+    return state0, v0, device_array(True)
 
 
 def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solver, max_steps, throw, state0, v0,
@@ -193,10 +193,10 @@ def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solv
     if cap < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps!r}.")
     saveat.check(t0, t1)
-    sol, _ = run_adaptive(scene, integrator, solver, ctrl, state0, jnp.asarray(t0), jnp.asarray(t1),
-                          jnp.asarray(h0), cap, saveat.every, saveat.gamma,
-                          None if saveat.ts is None else jnp.asarray(saveat.ts),
-                          None if event is None else jnp.asarray(float(event.tol)), v0, use_v0,
+    sol, _ = run_adaptive(scene, integrator, solver, ctrl, state0, device_array(t0), device_array(t1),
+                          device_array(h0), cap, saveat.every, saveat.gamma,
+                          None if saveat.ts is None else device_array(saveat.ts, float),
+                          None if event is None else device_array(float(event.tol)), v0, use_v0,
                           _segment(cap, saveat, adjoint), multigrid_arguments(integrator, scene, solver))
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol

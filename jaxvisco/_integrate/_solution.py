@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._config import jit
+from .._config import device_array, jit
 from .._scene import State
 
 RUNNING, FAILED, EQUILIBRIUM, DONE, MAX_STEPS = 0, 1, 2, 3, 4
@@ -79,9 +79,10 @@ class Solution(eqx.Module):
         out = self
         # Sliced on the host where the values are concrete: a device slice compiles a small
         # program per field and length (20 of them, 0.2 s of a cold first call of the paper
-        # scene); traced values (a derivative of the run) are sliced as they are.
+        # scene), and so does `jnp.asarray` of the slice (`device_array`); traced values (a
+        # derivative of the run) are sliced as they are.
         def cut(a, n):
-            return a[:n] if isinstance(a, jax.core.Tracer) else jnp.asarray(np.asarray(a)[:n])
+            return a[:n] if isinstance(a, jax.core.Tracer) else device_array(np.asarray(a)[:n])
         for name in frames:
             if getattr(self, name) is not None:
                 out = eqx.tree_at(lambda s: getattr(s, name), out, cut(getattr(self, name), ns))
@@ -90,7 +91,13 @@ class Solution(eqx.Module):
         return out
 
     def state(self, i=-1) -> State:
-        return State(self.x[i], self.p[i], None if self.gamma is None else self.gamma[i])
+        """The state of frame `i` (concrete frames are indexed on the host: an index of a
+        device array compiles a small program per shape)."""
+        def at(a):
+            if a is None or isinstance(a, jax.core.Tracer) or isinstance(i, jax.core.Tracer):
+                return None if a is None else a[i]
+            return device_array(np.asarray(a)[i])
+        return State(at(self.x), at(self.p), at(self.gamma))
 
 
 def initial_solution(scene, state=None, t0=0.0, velocity=None) -> Solution:
@@ -99,17 +106,22 @@ def initial_solution(scene, state=None, t0=0.0, velocity=None) -> Solution:
     (default: that of the momenta) is its `end_velocity`, the first step's predictor
     velocity. What a results file commits before the first step is computed."""
     state = scene.initial_state() if state is None else state
-    diag, v = _initial_diagnostics(scene, state)
-    v = v if velocity is None else jnp.asarray(velocity, dtype=v.dtype)
-    one = lambda a: None if a is None else jnp.asarray(a)[None]  # noqa: E731
-    zf, zi = jnp.zeros(0), jnp.zeros(0, dtype=int)
+    frame, v = _initial_frame(scene, state)
+    v = v if velocity is None else device_array(velocity, v.dtype)
+    # host values put on the device as they are (`device_array`: no small programs to compile)
+    one = lambda a: device_array(np.asarray([a], dtype=float))  # noqa: E731
+    zf, zi = device_array(np.zeros(0)), device_array(np.zeros(0, dtype=int))
     return Solution(
-        t=one(float(t0)), x=one(state.x), p=one(state.p), gamma=one(state.gamma), dissipated=one(0.0),
-        external_work=one(0.0), **{k: one(v_) for k, v_ in diag.items()}, step_t=zf, step_h=zf,
-        newton_iterations=zi, krylov_iterations=zi, chord_iterations=zi, residual=zf, rejections=zi, n_saved=jnp.asarray(1),
-        n_steps=jnp.asarray(0), status_code=jnp.asarray(DONE), end_velocity=v)
+        t=one(t0), dissipated=one(0.0), external_work=one(0.0), **frame, step_t=zf, step_h=zf,
+        newton_iterations=zi, krylov_iterations=zi, chord_iterations=zi, residual=zf, rejections=zi,
+        n_saved=device_array(1), n_steps=device_array(0), status_code=device_array(DONE), end_velocity=v)
 
 
 @jit
-def _initial_diagnostics(scene, state):
-    return scene.diagnostics(state), scene.velocity(state.p)
+def _initial_frame(scene, state):
+    """The frame fields of `state` (positions, momenta, internal variable, diagnostics), each
+    with a leading frame axis of length one, and its velocity $M^{-1}p$."""
+    one = lambda a: None if a is None else a[None]  # noqa: E731
+    diag = scene.diagnostics(state)
+    frame = dict(x=one(state.x), p=one(state.p), gamma=one(state.gamma), **{k: one(v) for k, v in diag.items()})
+    return frame, scene.velocity(state.p)
