@@ -17,6 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._config import device_array
 from ._schedule import AbstractStepSizeController
 
 
@@ -117,7 +118,7 @@ class PIDController(AbstractStepSizeController):
         if not 1 <= keep_band <= factormax:
             raise ValueError(f"PIDController: keep_band must be in [1, factormax], got {keep_band!r}.")
         strain_scale = _positive("strain_scale", strain_scale, allow_zero=True)
-        f = lambda v: jnp.asarray(v, dtype=jnp.float64)  # noqa: E731
+        f = lambda v: device_array(v, jnp.float64)  # noqa: E731
         self.rtol, self.atol, self.dtmin, self.dtmax = f(rtol), f(atol), f(dtmin), f(dtmax)
         self.pcoeff, self.icoeff, self.dcoeff = f(pcoeff), f(icoeff), f(dcoeff)
         self.safety, self.factormin, self.factormax, self.keep_band = f(safety), f(factormin), f(factormax), f(keep_band)
@@ -126,7 +127,11 @@ class PIDController(AbstractStepSizeController):
     def continued(self, strain):
         """This controller for a run that continues one whose largest strain was `strain`
         (its `Solution.strain_scale`): `strain_scale` at least that."""
-        return eqx.tree_at(lambda c: c.strain_scale, self, jnp.maximum(self.strain_scale, jnp.asarray(strain, float)))
+        if isinstance(strain, jax.core.Tracer) or isinstance(self.strain_scale, jax.core.Tracer):
+            scale = jnp.maximum(self.strain_scale, jnp.asarray(strain, float))
+        else:  # on the host (`device_array`)
+            scale = device_array(max(float(self.strain_scale), float(strain)), jnp.float64)
+        return eqx.tree_at(lambda c: c.strain_scale, self, scale)
 
     def accepted_factor(self, order, err, err1, err2):
         """Step growth after an accepted step with errors `err` (this), `err1`, `err2`
