@@ -1,6 +1,6 @@
 """What a user waits for before the first step: compile on a cold start and from the cache.
 
-    python benchmarks/startup.py [--repeats 3] [--no-paper]
+    python benchmarks/startup.py [--repeats 3] [--no-paper] [--out startup]
 
 Issue #16's startup targets, each measured in fresh processes:
 - the first `simulate` call of the paper scene (2D L-shape r1, eG(1), h = 0.1, 10 steps)
@@ -11,7 +11,7 @@ Scene construction and imports are timed separately from the first call; after i
 second identical call, a call with another t_end (11 steps: the same default capacity,
 12 slots, so no compilation) and the same with `max_steps=11` (an exact capacity: a new
 program, what every new step count cost before capacities were bucketed). Writes
-benchmarks/results/startup.json (medians over the repeats, and every repeat).
+benchmarks/results/startup.json (or OUT.json; medians over the repeats, and every repeat).
 """
 
 import argparse
@@ -68,6 +68,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--no-paper", action="store_true")
+    p.add_argument("--out", default="startup", help="results/OUT.json")
     a = p.parse_args(argv)
     mach = machine()
     runs = []
@@ -97,7 +98,7 @@ def main(argv=None):
     if not a.no_paper:
         summary["targets"]["paper --quick cold <= 20 s"] = summary["paper_quick_cold_s"] <= 20.0
     print(json.dumps(summary, indent=1))
-    write_json("startup.json", dict(machine=mach, settings=dict(
+    write_json(f"{a.out}.json", dict(machine=mach, settings=dict(
         repeats=a.repeats, case="paper scene (2D L-shape r1), eG(1), h = 0.1, 10 steps; jaxvisco paper --quick",
         timing="each number from a fresh process; cold: no cache; cached: a second process on the cache the "
                "'filling' process wrote; medians over repeats"), summary=summary, runs=runs))
