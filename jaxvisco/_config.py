@@ -92,9 +92,9 @@ _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_IND
 def compiler_options():
     """The XLA options jaxvisco compiles its programs with: those of the CPU options above
     that this jaxlib knows (they are experimental or may go; probed together, and one by
-    one where that fails: an unknown one is left out), none with ``JAXVISCO_XLA_OPTIONS=off`` (XLA's
-    defaults). Call it outside any JAX transformation (JAX accepts compile options on
-    top-level programs only).
+    one where that fails: an unknown one is left out), none with
+    ``JAXVISCO_XLA_OPTIONS=off`` (XLA's defaults). Call it outside any JAX transformation
+    (JAX accepts compile options on top-level programs only).
 
     Programs of your own that contain jaxvisco's kernels (an ODE solver around
     `semidiscrete(scene).vector_field`, a loss around them) want them too:
