@@ -4,6 +4,8 @@ Everything here is written for all elements and quadrature points at once (gathe
 `einsum`, scatter-add); nothing knows about time stepping.
 """
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -75,12 +77,7 @@ class Discretization(eqx.Module):
         self.N = jnp.asarray(qd.N)
         self.dN = jnp.asarray(qd.dN_dX)
         self.JxW = jnp.asarray(qd.JxW)
-        mass_el = jnp.einsum("eq,qa,qb->eab", self.JxW, self.N, self.N)
-        if mass == "lumped":
-            diag = jnp.diagonal(mass_el, axis1=-2, axis2=-1)
-            scale = jnp.sum(self.JxW, axis=1) / jnp.sum(diag, axis=1)
-            mass_el = jax.vmap(jnp.diag)(diag * scale[:, None])
-        self.mass_el = mass_el
+        self.mass_el = _element_mass(self.JxW, self.N, mass == "lumped")
         self.X = jnp.asarray(mesh.points, dtype=float)
         self.cells = StaticArray(np.asarray(mesh.cells))
         self.n_nodes = int(mesh.n_nodes)
@@ -171,3 +168,16 @@ class Discretization(eqx.Module):
 def _cell_matvec(M, u):
     """(e, a, b) times (..., e, b, i) -> (..., e, a, i), as broadcast products and sums."""
     return jnp.sum(M[..., :, :, None] * u[..., :, None, :, :], axis=-2)
+
+
+@functools.partial(jax.jit, static_argnames="lumped")
+def _element_mass(JxW, N, lumped):
+    """Element mass matrices (n_cells, n_en, n_en), consistent or row-sum lumped (scaled so
+    that each element keeps its mass), as one program: its operations called one by one
+    compiled one small program each (six for a lumped mesh)."""
+    mass_el = jnp.einsum("eq,qa,qb->eab", JxW, N, N)
+    if lumped:
+        diag = jnp.diagonal(mass_el, axis1=-2, axis2=-1)
+        scale = jnp.sum(JxW, axis=1) / jnp.sum(diag, axis=1)
+        mass_el = jax.vmap(jnp.diag)(diag * scale[:, None])
+    return mass_el
