@@ -77,27 +77,27 @@ class Solution(eqx.Module):
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
                   "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
         out = self
-        # Sliced on the host where the values are concrete: a device slice compiles a small
-        # program per field and length (20 of them, 0.2 s of a cold first call of the paper
-        # scene), and so does `jnp.asarray` of the slice (`device_array`); traced values (a
-        # derivative of the run) are sliced as they are.
-        def cut(a, n):
-            return a[:n] if isinstance(a, jax.core.Tracer) else device_array(np.asarray(a)[:n])
         for name in frames:
             if getattr(self, name) is not None:
-                out = eqx.tree_at(lambda s: getattr(s, name), out, cut(getattr(self, name), ns))
+                out = eqx.tree_at(lambda s: getattr(s, name), out, _index(getattr(self, name), slice(ns)))
         for name in STEP_KEYS:
-            out = eqx.tree_at(lambda s: getattr(s, name), out, cut(getattr(self, name), nt))
+            out = eqx.tree_at(lambda s: getattr(s, name), out, _index(getattr(self, name), slice(nt)))
         return out
 
     def state(self, i=-1) -> State:
-        """The state of frame `i` (concrete frames are indexed on the host: an index of a
-        device array compiles a small program per shape)."""
-        def at(a):
-            if a is None or isinstance(a, jax.core.Tracer) or isinstance(i, jax.core.Tracer):
-                return None if a is None else a[i]
-            return device_array(np.asarray(a)[i])
+        """The state of frame `i`."""
+        at = lambda a: None if a is None else _index(a, i)  # noqa: E731
         return State(at(self.x), at(self.p), at(self.gamma))
+
+
+def _index(a, index):
+    """`a[index]`, on the host where both are concrete: indexing or slicing a device array
+    compiles a small program per field and shape (20 of them were 0.2 s of a cold first
+    call of the paper scene), and so does `jnp.asarray` of the result (`device_array`).
+    Traced values (a derivative of the run) are indexed as they are."""
+    if isinstance(a, jax.core.Tracer) or isinstance(index, jax.core.Tracer):
+        return a[index]
+    return device_array(np.asarray(a)[index])
 
 
 def initial_solution(scene, state=None, t0=0.0, velocity=None) -> Solution:
