@@ -13,9 +13,9 @@ h = T / N whose errors are at most the adaptive run's: in the positions, in D, a
 both; and the ratios N / (adaptive steps). N from 40 (h = 1) by doubling, then bisection;
 a run that fails to converge counts as inaccurate. The errors of the constant step need
 not fall monotonically with N (a phase error can pass through zero), so N is the
-bisection's answer, not the global least (eG(1) at 1e-3: 1031 from N = 1, 1040 from 40). `adaptive_relaxation.py --scene
-paper` measures the same scene at sample times with the internal variable too (there the
-constant step is h = 0.25 / m). Deterministic (counts and errors). Writes
+bisection's answer, not the global least (eG(1) at 1e-3: 1031 from N = 1, 1040 from 40).
+`adaptive_relaxation.py --scene paper` measures the same scene at sample times with the
+internal variable too (there the constant step is h = 0.25 / m). Deterministic (counts and errors). Writes
 benchmarks/results/adaptive_paper_scene.json.
 """
 
