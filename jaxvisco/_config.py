@@ -84,8 +84,18 @@ def enable_compilation_cache(path=None):
 #   14.8 s, and its steps are no slower: 2D r4 lumped eG(1) 38.2 against 40.4 ms, 3D r1
 #   5.4 against 6.6 ms, 2D r4 eG(2) 55.9 against 61.0 ms (one alternating round, loaded
 #   2-core VM; `benchmarks/step_cost.py --case`).
+# - No tree reductions (XLA's `tree_reduction_rewriter` off). XLA:CPU splits every
+#   reduction longer than 32 (the dot products of the Krylov solver, the sums over
+#   quadrature points) into a `reduce-window` and a `reduce`, which its thunk runtime
+#   compiles as kernels of their own: the paper scene's time loop (eG(1)) had 251 separately
+#   compiled kernels, 185 without. Its XLA compile 5.55 / 5.81 / 5.73 s -> 5.18 / 5.48 /
+#   5.31 s (alternating fresh processes, AMD EPYC, load ~1); steps no slower (three
+#   alternating rounds, `benchmarks/revision_cost.py`, medians): 2D r4 lumped eG(1) 6.90
+#   -> 5.92 ms, 3D r1 eG(1) 4.99 -> 4.56 ms, 2D r4 eG(2) 15.87 -> 15.95 ms. The sums
+#   are then taken in order, in float64: every identity test passed unchanged.
 _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT",
-                "xla_cpu_use_fusion_emitters": False}
+                "xla_cpu_use_fusion_emitters": False,
+                "xla_disable_hlo_passes": "tree_reduction_rewriter"}
 
 
 @functools.cache
