@@ -34,8 +34,11 @@ def test_schedule_and_chunks():
     assert parse_schedule("20:0.1, 40:1.0") == [(20.0, 0.1), (40.0, 1.0)]
     with pytest.raises(ValueError, match="20-0.1"):
         parse_schedule("20-0.1")
-    assert chunk_size([240, 60]) == 30
-    assert chunk_size([104, 24]) == 8
+    # the target whatever the run lengths (one program of that capacity serves every
+    # chunk), a multiple of save_every, at most the longest run
+    assert chunk_size([240, 60]) == 50
+    assert chunk_size([104, 24]) == 50
+    assert chunk_size([240], target=50, save_every=4) == 48
     assert chunk_size([3]) == 3
 
 
