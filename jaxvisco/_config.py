@@ -100,9 +100,9 @@ _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_IND
 
 @functools.cache
 def compiler_options():
-    """The XLA options jaxvisco compiles its programs with: those of the CPU options above
-    that this jaxlib knows (they are experimental or may go; probed together, and one by
-    one where that fails: an unknown one is left out), none with
+    """The XLA options jaxvisco compiles its programs with on CPU (none on other backends):
+    those of the CPU options above that this jaxlib knows (they are experimental or may
+    go; probed together, and one by one where that fails: an unknown one is left out), none with
     ``JAXVISCO_XLA_OPTIONS=off`` (XLA's defaults). Call it outside any JAX transformation
     (JAX accepts compile options on top-level programs only).
 
@@ -113,6 +113,8 @@ def compiler_options():
     one right-hand side of the 2D L-shape costs 66 us instead of 24 us (refinement 1)
     and 1.51 ms instead of 0.38 ms (refinement 4)."""
     if os.environ.get("JAXVISCO_XLA_OPTIONS", "").strip().lower() in ("off", "0", "none", "default"):
+        return {}
+    if jax.default_backend() != "cpu":  # measured on CPU only; GPUs want their tree reductions
         return {}
     with _PROBE_LOCK:  # threads that start programs at once (`jaxvisco paper`) probe once
         return dict(_probed_options())
