@@ -97,21 +97,10 @@ class Discretization(eqx.Module):
         return u[..., self.cells.array, :]
 
     def scatter(self, u_el):
-        """Element arrays (..., n_cells, n_en, c) -> summed nodal field (..., n_nodes, c),
-        by gathers: every node sums its element entries (`_incidence`).
-
-        Why not a scatter-add: XLA:CPU expands every scatter into a loop compiled as a
-        module of its own, with a simplification pipeline after the expansion. The paper
-        scene's time loop (eG(1)) had 19 such loops and 185 separately compiled kernels, by
-        gathers 1 (the tangent's block assembly) and 158; its XLA compile 5.22 / 5.05 /
-        5.22 / 5.01 s -> 5.38 / 4.83 / 4.93 / 4.75 s (alternating fresh processes, AMD
-        EPYC, load ~1). Steps no slower (`benchmarks/revision_cost.py`, three alternating
-        rounds, medians): 2D r4 lumped eG(1) 5.76 -> 5.72 ms, 3D r1 eG(1) 4.81 -> 4.69 ms
-        (alone, an assembly by gathers was measured at 21 against 9.5 us at 2D r4)."""
-        lead, c = u_el.shape[:-3], u_el.shape[-1]
-        flat = u_el.reshape(lead + (-1, c))
-        flat = jnp.concatenate([flat, jnp.zeros(lead + (1, c), dtype=flat.dtype)], axis=-2)
-        return jnp.sum(flat[..., _incidence(self.cells.array, self.n_nodes), :], axis=-2)
+        """Element arrays (..., n_cells, n_en, c) -> summed nodal field (..., n_nodes, c)."""
+        lead = u_el.shape[:-3]
+        out = jnp.zeros(lead + (self.n_nodes, u_el.shape[-1]), dtype=u_el.dtype)
+        return out.at[..., self.cells.array, :].add(u_el)
 
     # -- kinematics and forces -----------------------------------------------------
     def gradient(self, u):
@@ -179,19 +168,6 @@ class Discretization(eqx.Module):
 def _cell_matvec(M, u):
     """(e, a, b) times (..., e, b, i) -> (..., e, a, i), as broadcast products and sums."""
     return jnp.sum(M[..., :, :, None] * u[..., :, None, :, :], axis=-2)
-
-
-def _incidence(cells, n_nodes):
-    """(n_nodes, valence) positions in the flattened element arrays (n_cells * n_en) of
-    each node's entries, in element order; padded with n_cells * n_en (a zero row)."""
-    flat = np.asarray(cells).reshape(-1)
-    order = np.argsort(flat, kind="stable")
-    counts = np.bincount(flat, minlength=n_nodes)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    rank = np.arange(flat.size) - np.repeat(starts, counts)
-    inc = np.full((n_nodes, max(int(counts.max()), 1)), flat.size)
-    inc[flat[order], rank] = order
-    return inc
 
 
 @functools.partial(jax.jit, static_argnames="lumped")
