@@ -477,3 +477,24 @@ def test_reference_configuration_is_exactly_unstrained(elem):
     # and a translated copy is unstrained to rounding of the translation only
     Ft = np.asarray(scene.disc.deformation_gradient(X + 0.25))
     assert np.max(np.abs(Ft - np.eye(3))) <= 1e-14
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("elem", ELEMENTS)
+def test_assembly_sums_every_element_entry(elem):
+    """`Discretization.scatter` (the assembly of every residual and mass product) equals
+    an unbuffered scatter-add of the element arrays (numpy's `add.at`), with leading
+    axes; a node that no element uses (the mesh's extra last point) receives zero."""
+    from jaxvisco._fem._space import Discretization
+
+    base = _mesh(elem)
+    points = np.vstack([np.asarray(base.points), np.asarray(base.points).max(0) + 1.0])
+    mesh = Mesh(points, np.asarray(base.cells), cell_type=elem)
+    disc = Discretization(mesh)
+    cells = np.asarray(mesh.cells)
+    u = np.random.default_rng(3).normal(size=(2, 3) + cells.shape + (4,))
+    expected = np.zeros((2, 3, mesh.n_nodes, 4))
+    np.add.at(expected, (slice(None), slice(None), cells), u)
+    out = np.asarray(disc.scatter(jnp.asarray(u)))
+    np.testing.assert_allclose(out, expected, rtol=1e-14, atol=1e-14)
+    assert np.all(out[:, :, -1] == 0.0)
