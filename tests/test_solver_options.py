@@ -1,6 +1,8 @@
 """Solver options: lineax's GMRES as the Krylov method and chord iterations give the same
 steps."""
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -40,10 +42,42 @@ def test_chord_iterations_reach_the_newton_solution():
 
 @pytest.mark.parametrize("kwargs, match", [(dict(chord=-1), "chord must be an integer"),
                                            (dict(chord=True), "chord must be an integer"),
-                                           (dict(chord_contraction=1.0), "chord_contraction must lie")])
+                                           (dict(chord_contraction=1.0), "chord_contraction must lie"),
+                                           (dict(stall_limit=-1), "stall_limit must be an integer >= 0"),
+                                           (dict(stall_limit=1.5), "stall_limit must be an integer >= 0")])
 def test_bad_chord_options_are_rejected(kwargs, match):
     with pytest.raises(ValueError, match=match):
         jv.NewtonKrylov(**kwargs)
+
+
+@pytest.mark.timeout(600)
+def test_a_stalled_newton_gives_the_step_up_early():
+    """eG(2)'s first step at h = 1 on the paper scene has no solution near its predictor
+    (the branch folds: `benchmarks/eg2_arclength.py`): Newton creeps with 4-8 line-search
+    halvings per iteration. With `stall_limit=2` the solve stops, unconverged, once two
+    iterations in a row needed 3 or more halvings; with 0 it runs to `max_iterations`.
+    At h = 0.1 (no stall) both rules take the same iterations to the same solution."""
+    from jaxvisco._solver._newton import solve_step
+    from jaxvisco._solver._tangent import empty_tangent
+    from jaxvisco._time_element._step import make_context, predictor
+
+    scene, scheme = jv.scenes.lshape(), jv.eG(2)
+    state = scene.initial_state()
+
+    @eqx.filter_jit
+    def solve(solver, h):
+        ctx = make_context(scene, state, jnp.asarray(0.0), h)
+        U0 = predictor(scheme, scene, ctx, scene.velocity(state.p))
+        return solve_step(solver, scheme, scene, ctx, U0, empty_tangent(scheme, scene))
+
+    stall, creep = (solve(jv.NewtonKrylov(stall_limit=n, chord=0), jnp.asarray(1.0)) for n in (2, 0))
+    assert not bool(stall.converged) and not bool(creep.converged)
+    assert int(creep.iterations) == 20, int(creep.iterations)  # max_iterations
+    assert int(stall.iterations) <= 4, int(stall.iterations)
+    small = [solve(jv.NewtonKrylov(stall_limit=n, chord=0), jnp.asarray(0.1)) for n in (2, 0)]
+    assert all(bool(r.converged) for r in small)
+    assert int(small[0].iterations) == int(small[1].iterations)
+    np.testing.assert_array_equal(np.asarray(small[0].U.x), np.asarray(small[1].U.x))
 
 
 def test_unknown_krylov_method_is_rejected():

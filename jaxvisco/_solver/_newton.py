@@ -39,6 +39,12 @@ from ._tangent import Tangent, body_rotation, form_tangent, schur_solve
 # (`residual_and_dissipation`): the accepted iterate's is the step's `D_n`.
 _residual = eqx.filter_jit(residual_and_dissipation)
 
+# Backtracking halvings (step length 1/8 or less) that make an accepted Newton iteration
+# count as stalled (`NewtonKrylov.stall_limit`). Chosen with `benchmarks/stall_limit.py`
+# (2, 3, 4 halvings; 2 or 3 in a row): see `benchmarks/results/stall_limit.json` and the
+# benchmarks README.
+_STALL_HALVINGS = 3
+
 
 class NewtonKrylov(eqx.Module):
     """Settings of the nonlinear solver of each time element.
@@ -59,6 +65,13 @@ class NewtonKrylov(eqx.Module):
       `krylov_max_steps` and `refresh_after` of jaxvisco 0.1 are deprecated aliases of
       `GMRES`'s `backend` (``"gmres"`` is ``"jaxvisco"``), `max_steps`, `refresh_after`.
     - `line_search`: backtracking halvings allowed per iteration (8; 0 disables it).
+    - `stall_limit`: give a step up once this many Newton iterations in a row needed
+      three or more backtracking halvings (a step of 1/8 or less) to lower the
+      residual (2; 0 never): Newton far from any solution of the step, where the time
+      loop halves the step (or the adaptive controller shrinks it) rather than spend
+      the remaining `max_iterations`. eG(2) at h = 1 on the paper scene has no solution
+      on the branch its predictor lies on (`benchmarks/eg2_arclength.py`: the branch
+      folds); there the rule cut its Newton iterations over ten steps from 259 to 122.
     - `reuse_limit`: keep the tangent for the next step only if this step needed at most
       this many Newton iterations (20: only a failed step discards it). The tangent is
       carried along the body's rigid rotation (`_tangent.schur_solve`), so it stays a good
@@ -89,9 +102,11 @@ class NewtonKrylov(eqx.Module):
     chord: int = eqx.field(static=True)
     chord_contraction: float = eqx.field(static=True)
     retain: int = eqx.field(static=True)
+    stall_limit: int = eqx.field(static=True)
 
     def __init__(self, rtol=1e-10, max_iterations=20, linear_solver=GMRES(), line_search=8, reuse_limit=20, chord=10,
-                 chord_contraction=0.5, retain=RETAIN, *, krylov=None, krylov_max_steps=None, refresh_after=None):
+                 chord_contraction=0.5, retain=RETAIN, stall_limit=2, *, krylov=None, krylov_max_steps=None,
+                 refresh_after=None):
         self.rtol = rtol
         self.max_iterations = max_iterations
         self.linear_solver = from_legacy(linear_solver, krylov, krylov_max_steps, refresh_after)
@@ -100,6 +115,7 @@ class NewtonKrylov(eqx.Module):
         self.chord = chord
         self.chord_contraction = chord_contraction
         self.retain = retain
+        self.stall_limit = stall_limit
 
     def __check_init__(self):
         if not (0.0 < self.rtol < 1.0):
@@ -110,6 +126,9 @@ class NewtonKrylov(eqx.Module):
             raise ValueError(f"chord must be an integer >= 0 (0: no chord iterations), got {self.chord!r}.")
         if not (0.0 < self.chord_contraction < 1.0):
             raise ValueError(f"chord_contraction must lie in (0, 1), got {self.chord_contraction!r}.")
+        if isinstance(self.stall_limit, bool) or not isinstance(self.stall_limit, int) or self.stall_limit < 0:
+            raise ValueError(f"stall_limit must be an integer >= 0 (0: never give a step up early), "
+                             f"got {self.stall_limit!r}.")
 
 
 class NewtonResult(eqx.Module):
@@ -208,7 +227,10 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         accept = first | decrease | (c["n_ls"] >= solver.line_search)
         prev = jnp.where(first, jnp.inf, c["norm"])
         n_newton = jnp.maximum(c["it"], 0)
+        stall = jnp.where(accept & ~first, jnp.where(c["n_ls"] >= _STALL_HALVINGS, c["stall"] + 1, 0), c["stall"])
         go_on = accept & ~done(norm_t, prev) & (n_newton < solver.max_iterations) & jnp.isfinite(norm_t)
+        if solver.stall_limit:
+            go_on = go_on & (stall < solver.stall_limit)
         refresh = c["refresh"] | (c["n_ls"] > 0)  # a step that needed backtracking
 
         def newton_step(tan):
@@ -246,7 +268,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             it=c["it"] + go_on.astype(int) + first.astype(int), kits=c["kits"] + n_lin, tan=tan,
             refresh=jnp.where(accept, direct or (n_lin > lin.refresh_after), c["refresh"]),
             asked=c["asked"] | (go_on & refresh),  # a Newton step that wanted a fresh tangent
-            pending=go_on | ~accept,
+            pending=go_on | ~accept, stall=stall,
         )
 
     # The residual has the unknowns' structure (`residual`): no trace of it for its shape
@@ -275,7 +297,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     init = dict(U=U_start, R=zero, D=D_none,
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
                 a=jnp.asarray(0.0), n_ls=jnp.asarray(0), it=jnp.asarray(-1), kits=jnp.asarray(0),
-                tan=tangent, refresh=stale, asked=jnp.asarray(False), pending=~chord_done)
+                tan=tangent, refresh=stale, asked=jnp.asarray(False), pending=~chord_done, stall=jnp.asarray(0))
     c = jax.lax.while_loop(lambda c: c["pending"], body, init)
     if chord_state is not None:
         c = dict(c, norm=jnp.where(chord_done, chord_state["norm"], c["norm"]),
