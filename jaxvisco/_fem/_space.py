@@ -1,7 +1,7 @@
 """Total Lagrangian finite elements: the semi-discrete operators (THEORY §2).
 
 Everything here is written for all elements and quadrature points at once (gather,
-`einsum`, scatter-add); nothing knows about time stepping.
+`einsum`, sums over each node's element entries); nothing knows about time stepping.
 """
 
 import functools
