@@ -16,6 +16,8 @@ import jax.numpy as jnp
 import lineax as lx
 from jax.flatten_util import ravel_pytree
 
+from ._update import put
+
 
 def gmres(matvec, precond, b, rtol, max_steps, recompute=False, restart=None):
     """Solve ``A x = b`` (A = `matvec`, M^{-1} = `precond`, pytrees alike).
@@ -65,12 +67,12 @@ def _cycle(A, Minv, r0, tol, m, budget, recompute, residual=False):
     Returns (correction, steps, residual norm, residual vector or None)."""
     n = r0.shape[0]
     beta = jnp.linalg.norm(r0)
-    V = jnp.zeros((m + 1, n)).at[0].set(r0 / jnp.where(beta > 0, beta, 1.0))
+    V = put(jnp.zeros((m + 1, n)), 0, r0 / jnp.where(beta > 0, beta, 1.0))
     Z = jnp.zeros((0 if recompute else m, n))
     H = jnp.zeros((m + 1, m))
     cs = jnp.zeros(m)
     sn = jnp.zeros(m)
-    g = jnp.zeros(m + 1).at[0].set(beta)
+    g = put(jnp.zeros(m + 1), 0, beta)
 
     def cond(c):
         j, V, Z, H, cs, sn, g = c
@@ -85,28 +87,28 @@ def _cycle(A, Minv, r0, tol, m, budget, recompute, residual=False):
         def mgs(i, carry):
             w, h = carry
             hij = jnp.dot(V[i], w)
-            return w - hij * V[i], h.at[i].set(hij)
+            return w - hij * V[i], put(h, i, hij)
 
         w, hcol = jax.lax.fori_loop(0, j + 1, mgs, (w, jnp.zeros(m + 1)))
         hnext = jnp.linalg.norm(w)
-        hcol = hcol.at[j + 1].set(hnext)
-        V = V.at[j + 1].set(w / jnp.where(hnext > 0, hnext, 1.0))
+        hcol = put(hcol, j + 1, hnext)
+        V = put(V, j + 1, w / jnp.where(hnext > 0, hnext, 1.0))
         if not recompute:
-            Z = Z.at[j].set(z)
+            Z = put(Z, j, z)
 
         # Apply the previous Givens rotations to the new column, then a new one.
         def rot(i, h):
             a, bb = h[i], h[i + 1]
-            return h.at[i].set(cs[i] * a + sn[i] * bb).at[i + 1].set(-sn[i] * a + cs[i] * bb)
+            return put(put(h, i, cs[i] * a + sn[i] * bb), i + 1, -sn[i] * a + cs[i] * bb)
 
         hcol = jax.lax.fori_loop(0, j, rot, hcol)
         a, bb = hcol[j], hcol[j + 1]
         r = jnp.hypot(a, bb)
         c_, s_ = jnp.where(r > 0, a / r, 1.0), jnp.where(r > 0, bb / r, 0.0)
-        hcol = hcol.at[j].set(r).at[j + 1].set(0.0)
-        cs, sn = cs.at[j].set(c_), sn.at[j].set(s_)
-        g = g.at[j + 1].set(-s_ * g[j]).at[j].set(c_ * g[j])
-        H = H.at[:, j].set(hcol)
+        hcol = put(put(hcol, j, r), j + 1, 0.0)
+        cs, sn = put(cs, j, c_), put(sn, j, s_)
+        g = put(put(g, j + 1, -s_ * g[j]), j, c_ * g[j])
+        H = put(H, j, hcol, axis=1)
         return j + 1, V, Z, H, cs, sn, g
 
     j, V, Z, H, cs, sn, g = jax.lax.while_loop(cond, body, (0, V, Z, H, cs, sn, g))
@@ -122,9 +124,9 @@ def _cycle(A, Minv, r0, tol, m, budget, recompute, residual=False):
     def unrotate(k, u):  # rotations j-1, ..., 0 transposed
         i = j - 1 - k
         a, bb = u[i], u[i + 1]
-        return u.at[i].set(cs[i] * a - sn[i] * bb).at[i + 1].set(sn[i] * a + cs[i] * bb)
+        return put(put(u, i, cs[i] * a - sn[i] * bb), i + 1, sn[i] * a + cs[i] * bb)
 
-    u = jax.lax.fori_loop(0, j, unrotate, jnp.zeros(m + 1).at[j].set(g[j]))
+    u = jax.lax.fori_loop(0, j, unrotate, put(jnp.zeros(m + 1), j, g[j]))
     return x, j, jnp.abs(g[j]), V.T @ u
 
 

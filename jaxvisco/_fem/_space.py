@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._tensor import det3
+from ._update import pad_to_3d
 
 
 class StaticArray:
@@ -46,8 +47,7 @@ def embed_3d(F_d):
     d = F_d.shape[-1]
     if d == 3:
         return F_d
-    F = jnp.zeros(F_d.shape[:-2] + (3, 3), dtype=F_d.dtype)
-    return F.at[..., :d, :d].set(F_d).at[..., 2, 2].set(1.0)
+    return pad_to_3d(F_d) + jnp.asarray(np.diag([0.0, 0.0, 1.0]), dtype=F_d.dtype)
 
 
 class Discretization(eqx.Module):
@@ -119,11 +119,7 @@ class Discretization(eqx.Module):
     def gradient(self, u):
         """Nodal vectors (..., n_nodes, d) -> their material gradient at every quadrature
         point, zero-padded to (..., n_cells, nq, 3, 3) (no F33 = 1: for increments)."""
-        g = self._gradient_d(u)
-        d = g.shape[-1]
-        if d == 3:
-            return g
-        return jnp.zeros(g.shape[:-2] + (3, 3), dtype=g.dtype).at[..., :d, :d].set(g)
+        return pad_to_3d(self._gradient_d(u))
 
     def _gradient_d(self, u):
         # (broadcast products and sums: as an einsum XLA:CPU ran a batched dot per cell)

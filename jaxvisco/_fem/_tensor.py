@@ -134,7 +134,9 @@ def small_solve(A, b):
         # Partial pivoting: bring the largest remaining entry of column i to row i.
         p = jnp.argmax(jnp.where(rows >= i, jnp.abs(M[:, i]), -1.0))
         ri, rp = M[i], M[p]
-        M = M.at[i].set(rp).at[p].set(ri)
+        # (row swaps by selects: the pivot p varies between the points this runs for under
+        # `vmap`, where an indexed update becomes a scatter, `_update`)
+        M = jnp.where((rows == p)[:, None], ri[None, :], jnp.where((rows == i)[:, None], rp[None, :], M))
         factors = jnp.where(rows > i, M[:, i] / M[i, i], 0.0)
         return M - factors[:, None] * M[i][None, :]
 
@@ -143,7 +145,7 @@ def small_solve(A, b):
 
     def substitute(j, out):
         i = n - 1 - j  # rows below i are solved; out[i] and above are still zero
-        return out.at[i].set((X[i] - U[i] @ out) / U[i, i])
+        return jnp.where((rows == i)[:, None], ((X[i] - U[i] @ out) / U[i, i])[None, :], out)
 
     out = jax.lax.fori_loop(0, n, substitute, jnp.zeros_like(X))
     return out[:, 0] if vec else out

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from .._config import jit
+from .._fem._update import put
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
 from .._time_element._estimate import body_strain, dense_state, scaled_error, uses_end_velocities
@@ -154,12 +155,12 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                     lambda f: f, c["frames"])
                 n_saved = c["n_saved"] + save.astype(int)
             s = c["steps"]
-            steps = dict(step_t=s["step_t"].at[i].set(t_next), step_h=s["step_h"].at[i].set(h_try),
-                         newton_iterations=s["newton_iterations"].at[i].set(c["its"] + r.iterations),
-                         krylov_iterations=s["krylov_iterations"].at[i].set(c["kits"] + r.krylov_iterations),
-                         chord_iterations=s["chord_iterations"].at[i].set(c["chord"] + r.chord_iterations),
-                         residual=s["residual"].at[i].set(r.residual),
-                         rejections=s["rejections"].at[i].set(c["rej"]))
+            steps = dict(step_t=put(s["step_t"], i, t_next), step_h=put(s["step_h"], i, h_try),
+                         newton_iterations=put(s["newton_iterations"], i, c["its"] + r.iterations),
+                         krylov_iterations=put(s["krylov_iterations"], i, c["kits"] + r.krylov_iterations),
+                         chord_iterations=put(s["chord_iterations"], i, c["chord"] + r.chord_iterations),
+                         residual=put(s["residual"], i, r.residual),
+                         rejections=put(s["rejections"], i, c["rej"]))
             return dict(i=i + 1, state=new, t=t_next, v=v_end, vm=vm_end, frames=frames, steps=steps, n_saved=n_saved,
                         dissipated=dissipated, work=work, err1=err, err2=c["err1"],
                         strain=jnp.maximum(c["strain"], strain), its=jnp.asarray(0), kits=jnp.asarray(0),

@@ -36,6 +36,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._fem._update import put_or_drop
 from .._solver._implicit import materialize_zeros, solve_step_implicit
 from .._solver._tangent import empty_tangent
 from .._time_element._estimate import polynomial_state, step_polynomial
@@ -73,20 +74,20 @@ def empty_record(size, n_frames, dtype, dense=False):
 def record_substep(rec, t, h, ok):
     """`rec` with the sub-step from `t` of size `h` written at slot `rec.n`, which it
     takes if it was accepted (`ok`); a rejected attempt is overwritten by the next."""
-    return Record(t=rec.t.at[rec.n].set(t, mode="drop"), h=rec.h.at[rec.n].set(h, mode="drop"),
+    return Record(t=put_or_drop(rec.t, rec.n, t), h=put_or_drop(rec.h, rec.n, h),
                   n=rec.n + ok.astype(int), frame_slot=rec.frame_slot, frame_s=rec.frame_s)
 
 
 def record_frame(rec, frame, save):
     """`rec` noting that frame `frame` holds the last accepted sub-step (when `save`)."""
     slot = jnp.where(save, rec.n - 1, rec.frame_slot[jnp.minimum(frame, rec.frame_slot.shape[0] - 1)])
-    return eqx.tree_at(lambda r: r.frame_slot, rec, rec.frame_slot.at[frame].set(slot, mode="drop"))
+    return eqx.tree_at(lambda r: r.frame_slot, rec, put_or_drop(rec.frame_slot, frame, slot))
 
 
 def record_dense_frame(rec, frame, slot, s):
     """`rec` noting that frame `frame` lies at the fraction `s` of the sub-step `slot`."""
     return eqx.tree_at(lambda r: (r.frame_slot, r.frame_s), rec,
-                       (rec.frame_slot.at[frame].set(slot, mode="drop"), rec.frame_s.at[frame].set(s, mode="drop")))
+                       (put_or_drop(rec.frame_slot, frame, slot), put_or_drop(rec.frame_s, frame, s)))
 
 
 def segment_length(n_slots, save_every=1, checkpoint_every=None):

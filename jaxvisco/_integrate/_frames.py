@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 
 from .._fem._tensor import small_solve
+from .._fem._update import put
 from .._scene import Scene
 
 
@@ -14,12 +15,12 @@ def relative_kinetic_energy(scene: Scene, x, p):
     c = jnp.mean(x, axis=0)
     r = x - c
     d = x.shape[-1]
-    modes = [jnp.zeros_like(x).at[:, i].set(1.0) for i in range(d)]
+    modes = [jnp.broadcast_to(jnp.eye(d, dtype=x.dtype)[i], x.shape) for i in range(d)]
     if d == 2:
         modes.append(jnp.stack([-r[:, 1], r[:, 0]], -1))
     else:
         for axis in range(3):
-            e = jnp.zeros(3).at[axis].set(1.0)
+            e = jnp.eye(3)[axis]
             modes.append(jnp.cross(e, r))
     R = jnp.stack(modes)  # (m, n, d)
     MR = jax.vmap(lambda u: scene.disc.mass_matvec(u, scene.density))(R)
@@ -57,7 +58,7 @@ def frame_values(state, diag, dissipated, work, with_gamma):
 def write_frame(frames, idx, t, state, diag, dissipated, work):
     """`frames` with frame `idx` set."""
     vals = dict(t=t, **frame_values(state, diag, dissipated, work, frames["gamma"] is not None))
-    return {k: (None if b is None else b.at[idx].set(vals[k])) for k, b in frames.items()}
+    return {k: (None if b is None else put(b, idx, vals[k])) for k, b in frames.items()}
 
 
 def frame_fields(frames):

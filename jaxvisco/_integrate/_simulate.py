@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._config import _top_level, device_array, jit
+from .._fem._update import put
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
 from .._solver._tangent import empty_tangent, multigrid_arguments, multigrid_scope
@@ -337,12 +338,12 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
 
         frames = jax.lax.cond(save, do_save, lambda f: f, c["frames"])
         steps = c["steps"]
-        steps = dict(step_t=steps["step_t"].at[i].set(a["t"]), step_h=steps["step_h"].at[i].set(hs[i]),
-                     newton_iterations=steps["newton_iterations"].at[i].set(a["its"]),
-                     krylov_iterations=steps["krylov_iterations"].at[i].set(a["kits"]),
-                     chord_iterations=steps["chord_iterations"].at[i].set(a["chord"]),
-                     residual=steps["residual"].at[i].set(a["res"]),
-                     rejections=steps["rejections"].at[i].set(a["rej"]))
+        steps = dict(step_t=put(steps["step_t"], i, a["t"]), step_h=put(steps["step_h"], i, hs[i]),
+                     newton_iterations=put(steps["newton_iterations"], i, a["its"]),
+                     krylov_iterations=put(steps["krylov_iterations"], i, a["kits"]),
+                     chord_iterations=put(steps["chord_iterations"], i, a["chord"]),
+                     residual=put(steps["residual"], i, a["res"]),
+                     rejections=put(steps["rejections"], i, a["rej"]))
         rec = record_frame(a["rec"], c["n_saved"], save)
         return dict(i=i + 1, state=a["state"], t=a["t"], v=a["v"], tan=a["tan"], frames=frames, steps=steps, rec=rec,
                     n_saved=c["n_saved"] + save.astype(int), dissipated=dissipated, work=work, status=status,

@@ -25,6 +25,7 @@ import numpy as np
 from .._export import record_pattern, register_pattern
 from .._fem._passes import map_in_passes
 from .._fem._tensor import mm, small_inv, sym_to_vec, vec_to_sym
+from .._fem._update import pad_to_3d
 from .._time_element._step import Unknowns, constraint_scale, force_term, nodal_fields
 from . import _amg
 from ._sparse import RETAIN, HostLU, lu_factor, lu_solve
@@ -165,8 +166,10 @@ def _point_tangent(scheme, material, h, F, G, d=3, directions=False):
     else:
         jac = lambda f, *x: jax.jacfwd(f, argnums=tuple(range(len(x))))(*x)  # noqa: E731
 
+    outside = 1.0 - pad_to_3d(jnp.ones((d, d), Fu.dtype))  # F's components the motion does not change
+
     def full(fu):  # the d x d components into the point's F at the new nodes
-        return Fu.at[:, :d, :d].set(fu.reshape(k, d, d))
+        return pad_to_3d(fu.reshape(k, d, d)) + Fu * outside
 
     fu = Fu[:, :d, :d]
 
