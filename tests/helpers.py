@@ -24,6 +24,23 @@ def subprocess_env():
     return env
 
 
+def capture_time_loop(monkeypatch):
+    """Have `simulate` note the arguments of its compiled time loop (`_simulate._run`):
+    returns (the loop, a dict that holds ``args`` and ``kwargs`` after a call), so that a
+    test can lower the loop a run compiled (``run.lower(*args, **kwargs)``)."""
+    from jaxvisco._integrate import _simulate
+
+    captured = {}
+    run = _simulate._run
+
+    def capture(*args, **kwargs):
+        captured.update(args=args, kwargs=kwargs)
+        return run(*args, **kwargs)
+
+    monkeypatch.setattr(_simulate, "_run", capture)
+    return run, captured
+
+
 # ----------------------------------------------------------------- finite differences
 
 

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import capture_time_loop
 
 import jaxvisco as jv
 from jaxvisco._solver import _amg, _tangent
@@ -387,19 +388,10 @@ def test_time_loop_takes_the_hierarchy_as_arguments(monkeypatch):
     (`_tangent.multigrid_arguments`): the lowered loop embeds none of them as constants
     (where reading them as constants embeds several times their size), and runs to the
     same steps as the loop that reads them as constants."""
-    from jaxvisco._integrate import _simulate
-
     monkeypatch.setattr(_amg, "MAX_COARSE", 40)
     scene = _scene(3, 1, "hex8", held=True)
     solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner="amg"))
-    captured = {}
-    run = _simulate._run
-
-    def capture(*args, **kwargs):
-        captured.update(args=args, kwargs=kwargs)
-        return run(*args, **kwargs)
-
-    monkeypatch.setattr(_simulate, "_run", capture)
+    run, captured = capture_time_loop(monkeypatch)
     sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, solver=solver)
     args, kwargs = captured["args"], captured["kwargs"]
     multigrid = args[-1]

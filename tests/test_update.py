@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import capture_time_loop
 
 import jaxvisco as jv
 from jaxvisco._fem._update import pad_to_3d, put, put_or_drop
@@ -41,16 +42,7 @@ def test_time_loop_has_no_scatter(monkeypatch, scheme):
     """The paper scene's compiled time loop (default solver) holds no scatter: XLA:CPU
     expands each into a while loop of its own, with a simplification pass after the
     expansion (65 of them cost ~0.5 s of the cold first call's 6.5 s)."""
-    from jaxvisco._integrate import _simulate
-
-    captured = {}
-    run = _simulate._run
-
-    def capture(*args, **kwargs):
-        captured.update(args=args, kwargs=kwargs)
-        return run(*args, **kwargs)
-
-    monkeypatch.setattr(_simulate, "_run", capture)
+    run, captured = capture_time_loop(monkeypatch)
     jv.simulate(jv.scenes.lshape(), scheme, t1=0.2, dt0=0.1)
     text = run.lower(*captured["args"], **captured["kwargs"]).as_text()
     assert "dynamic_update_slice" in text  # (the updates are there, as in-place slices)

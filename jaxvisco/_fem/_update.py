@@ -12,7 +12,7 @@ Measured on the paper scene's eG(1) loop (AMD EPYC, 2 cores, load ~1): 65 -> 0 s
 expansions, 158 -> 124 separately compiled kernels, 781 -> 684 fusions; its cold first
 call, four alternating pairs of fresh processes: XLA 4.87 / 5.03 / 4.69 / 4.76 s -> 4.38 /
 4.30 / 4.31 / 4.34 s, wall 6.59 / 6.65 / 6.32 / 6.41 s -> 5.96 / 5.93 / 5.94 / 6.03 s.
-Steps no slower (`benchmarks/results/rc_dus_2d.json`, `rc_dus_3d.json`).
+Steps no slower (`benchmarks/results/rc_dus_2d.json`, `rc_dus_3d.json`, `rc_dus_eg2.json`).
 """
 
 import jax
