@@ -100,10 +100,9 @@ class Discretization(eqx.Module):
         """Element arrays (..., n_cells, n_en, c) -> summed nodal field (..., n_nodes, c),
         by gathers: every node sums its element entries (`_incidence`).
 
-        Why not a scatter-add: XLA:CPU expands every scatter into a loop compiled as a
-        module of its own, with a simplification pipeline after the expansion. The paper
-        scene's time loop (eG(1)) had 19 such loops and 185 separately compiled kernels, by
-        gathers 1 (the tangent's block assembly) and 158. Its cold first call, four
+        Why not a scatter-add: XLA:CPU expands every scatter into a loop of its own
+        (`_update` replaced the time loop's other scatters). By gathers the paper scene's
+        eG(1) loop compiled 158 separate kernels instead of 185. Its cold first call, four
         alternating pairs of fresh processes (AMD EPYC, load ~1): XLA 5.29 / 5.02 / 5.46 /
         5.11 s -> 5.01 / 5.06 / 5.12 / 5.13 s, wall 7.09 / 6.60 / 7.17 / 6.74 s -> 6.66 /
         6.72 / 6.77 / 6.87 s (a day before: XLA medians 5.13 -> 4.88 s). Steps no slower

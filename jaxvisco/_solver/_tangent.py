@@ -166,10 +166,11 @@ def _point_tangent(scheme, material, h, F, G, d=3, directions=False):
     else:
         jac = lambda f, *x: jax.jacfwd(f, argnums=tuple(range(len(x))))(*x)  # noqa: E731
 
-    outside = 1.0 - pad_to_3d(jnp.ones((d, d), Fu.dtype))  # F's components the motion does not change
+    inside = pad_to_3d(jnp.ones((d, d), bool))  # F's components the motion changes
 
     def full(fu):  # the d x d components into the point's F at the new nodes
-        return pad_to_3d(fu.reshape(k, d, d)) + Fu * outside
+        fu = fu.reshape(k, d, d)
+        return fu if d == 3 else jnp.where(inside, pad_to_3d(fu), Fu)
 
     fu = Fu[:, :d, :d]
 
