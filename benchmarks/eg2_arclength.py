@@ -39,6 +39,65 @@ from jaxvisco._time_element._step import make_context, predictor, residual  # no
 RTOL = 1e-10  # on the scaled max norm of the residual, as `eg2_large_step.newton`
 
 
+def tangent_of(Gu, Gq, u, q, prev=None):
+    """The branch's unit tangent (z, 1) / |(z, 1)|, J_u z = -dG/dq, oriented along `prev`."""
+    z = np.linalg.solve(np.asarray(Gu(u, q)), -np.asarray(Gq(u, q)))
+    t = np.concatenate([z, [1.0]])
+    t /= np.linalg.norm(t)
+    if prev is not None and t @ prev < 0:
+        t = -t
+    return t
+
+
+def follow(G, Gu, Gq, converged, describe, u, q, rows, name, q_end, dsigma, max_points):
+    """Pseudo-arclength continuation of G(u, q) = 0 in the parameter q (called `name` in
+    the rows) from the converged point (u, q) whose row is rows[-1]: predictor along the
+    tangent, Newton on the bordered dense Jacobian [G = 0; t . (y - y_prev) = dsigma]
+    (`converged(r)`: the residual r is small enough); dsigma halves after a corrector of
+    more than 8 iterations and grows 1.5x after one of at most 3. Stops at `max_points`
+    rows, at q >= `q_end`, or once q has fallen 0.05 below a fold (where the tangent's
+    q-component changes sign). Returns (u, q, index of the row that reached q_end or
+    None, fold or None); appends a `describe(u, q, t, iterations, dsigma)` row per point."""
+    t = tangent_of(Gu, Gq, u, q)
+    dsig, reached, fold = dsigma, None, None
+    while len(rows) < max_points and dsig > 1e-9:
+        y = np.concatenate([u, [q]])
+        yp = y + dsig * t
+        ok, its = False, 0
+        for its in range(1, 9):
+            uu, qq = yp[:-1], yp[-1]
+            r = np.asarray(G(uu, qq))
+            if converged(r) and its > 1:
+                ok = True
+                break
+            A = np.zeros((len(yp), len(yp)))
+            A[:-1, :-1] = np.asarray(Gu(uu, qq))
+            A[:-1, -1] = np.asarray(Gq(uu, qq))
+            A[-1] = t
+            rhs = -np.concatenate([r, [t @ (yp - y) - dsig]])
+            yp = yp + np.linalg.solve(A, rhs)
+            if not np.all(np.isfinite(yp)):
+                break
+        if not ok:
+            dsig *= 0.5
+            continue
+        u, q = yp[:-1], float(yp[-1])
+        t_new = tangent_of(Gu, Gq, u, q, t)
+        rows.append(describe(u, q, t_new, its - 1, dsig))
+        print({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in rows[-1].items()}, flush=True)
+        if fold is None and t_new[-1] * t[-1] < 0:
+            fold = {f"{name}_max": max(r[name] for r in rows), "point": len(rows) - 1}
+        t = t_new
+        if q >= q_end and reached is None:
+            reached = len(rows) - 1
+            break
+        if fold is not None and q < rows[fold["point"]][name] - 0.05:
+            break  # the branch has turned back well below its fold
+        if its - 1 <= 3:
+            dsig *= 1.5
+    return u, q, reached, fold
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-points", type=int, default=80)
@@ -60,14 +119,6 @@ def main():
 
     def norm(u, s):
         return float(_norm(unravel(G(u, s)), sx))
-
-    def tangent(u, s, prev=None):
-        z = np.linalg.solve(np.asarray(Gu(u, s)), -np.asarray(Gs(u, s)))
-        t = np.concatenate([z, [1.0]])
-        t /= np.linalg.norm(t)
-        if prev is not None and t @ prev < 0:
-            t = -t
-        return t
 
     leaves = jax.tree_util.tree_leaves_with_path(U0)
     bounds = np.cumsum([0] + [leaf.size for _, leaf in leaves])
@@ -103,45 +154,10 @@ def main():
     u = np.asarray(u)
     u_start = u.copy()
     s = 0.0
-    t = tangent(u, s)
-    rows = [describe(u, s, t, len(n) - 1, 0.0)]
+    rows = [describe(u, s, tangent_of(Gu, Gs, u, s), len(n) - 1, 0.0)]
     print({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in rows[-1].items()}, flush=True)
-    dsig, reached, fold = a.dsigma, None, None
-    while len(rows) < a.max_points and dsig > 1e-9:
-        y = np.concatenate([u, [s]])
-        yp = y + dsig * t
-        ok, its = False, 0
-        for its in range(1, 9):
-            uu, ss = yp[:-1], yp[-1]
-            r = np.asarray(G(uu, ss))
-            if _norm(unravel(r), sx) <= RTOL and its > 1:
-                ok = True
-                break
-            A = np.zeros((len(yp), len(yp)))
-            A[:-1, :-1] = np.asarray(Gu(uu, ss))
-            A[:-1, -1] = np.asarray(Gs(uu, ss))
-            A[-1] = t
-            rhs = -np.concatenate([r, [t @ (yp - y) - dsig]])
-            yp = yp + np.linalg.solve(A, rhs)
-            if not np.all(np.isfinite(yp)):
-                break
-        if not ok:
-            dsig *= 0.5
-            continue
-        u, s = yp[:-1], float(yp[-1])
-        t_new = tangent(u, s, t)
-        rows.append(describe(u, s, t_new, its - 1, dsig))
-        print({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in rows[-1].items()}, flush=True)
-        if fold is None and t_new[-1] * t[-1] < 0:
-            fold = dict(s_max=max(r["s"] for r in rows), point=len(rows) - 1)
-        t = t_new
-        if s >= 1.0 and reached is None:
-            reached = len(rows) - 1
-            break
-        if fold is not None and s < rows[fold["point"]]["s"] - 0.05:
-            break  # the branch has turned back well below its fold
-        if its - 1 <= 3:
-            dsig *= 1.5
+    u, s, reached, fold = follow(G, Gu, Gs, lambda r: _norm(unravel(r), sx) <= RTOL, describe, u, s, rows, "s", 1.0,
+                                 a.dsigma, a.max_points)
     at_1 = None
     if reached is not None:  # eG(2) itself (s = 1), by exact Newton from the branch's point past s = 1
         u1, n, smin = newton(scene, ctx, jv.eG(2), u, unravel)

@@ -25,6 +25,7 @@ import argparse
 import time
 
 from common import jv, machine, write_json  # noqa: I001
+from eg2_arclength import RTOL, follow, tangent_of  # noqa: E402
 from eg2_large_step import newton, worst_point  # noqa: E402
 
 import jax  # noqa: E402
@@ -33,9 +34,6 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 
 from jaxvisco._solver._newton import _norm, _scale  # noqa: E402
 from jaxvisco._time_element._step import make_context, predictor, residual  # noqa: E402
-
-RTOL = 1e-10  # on the scaled max norm of the residual, as `eg2_large_step.newton`
-
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -66,14 +64,6 @@ def main():
     def norm(u, h):
         return float(_norm(unravel(G(u, h)), sx))
 
-    def tangent(u, h, prev=None):
-        z = np.linalg.solve(np.asarray(Gu(u, h)), -np.asarray(Gh(u, h)))
-        t = np.concatenate([z, [1.0]])
-        t /= np.linalg.norm(t)
-        if prev is not None and t @ prev < 0:
-            t = -t
-        return t
-
     def describe(u, h, t, its, dsig):
         J = np.asarray(Gu(u, h))
         sign, _ = np.linalg.slogdet(J)
@@ -88,45 +78,10 @@ def main():
     u, h = np.asarray(u), a.h_start
     start = dict(h=h, newton_residuals=n)
     print("start:", start, flush=True)
-    t = tangent(u, h)
-    rows = [describe(u, h, t, len(n) - 1, 0.0)]
+    rows = [describe(u, h, tangent_of(Gu, Gh, u, h), len(n) - 1, 0.0)]
     print({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in rows[-1].items()}, flush=True)
-    dsig, reached, fold = a.dsigma, None, None
-    while len(rows) < a.max_points and dsig > 1e-9:
-        y = np.concatenate([u, [h]])
-        yp = y + dsig * t
-        ok, its = False, 0
-        for its in range(1, 9):
-            uu, hh = yp[:-1], yp[-1]
-            r = np.asarray(G(uu, hh))
-            if _norm(unravel(r), sx) <= RTOL and its > 1:
-                ok = True
-                break
-            A = np.zeros((len(yp), len(yp)))
-            A[:-1, :-1] = np.asarray(Gu(uu, hh))
-            A[:-1, -1] = np.asarray(Gh(uu, hh))
-            A[-1] = t
-            rhs = -np.concatenate([r, [t @ (yp - y) - dsig]])
-            yp = yp + np.linalg.solve(A, rhs)
-            if not np.all(np.isfinite(yp)):
-                break
-        if not ok:
-            dsig *= 0.5
-            continue
-        u, h = yp[:-1], float(yp[-1])
-        t_new = tangent(u, h, t)
-        rows.append(describe(u, h, t_new, its - 1, dsig))
-        print({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in rows[-1].items()}, flush=True)
-        if fold is None and t_new[-1] * t[-1] < 0:
-            fold = dict(h_max=max(r["h"] for r in rows), point=len(rows) - 1)
-        t = t_new
-        if h >= a.h_end and reached is None:
-            reached = len(rows) - 1
-            break
-        if fold is not None and h < rows[fold["point"]]["h"] - 0.05:
-            break  # the branch has turned back well below its fold
-        if its - 1 <= 3:
-            dsig *= 1.5
+    u, h, reached, fold = follow(G, Gu, Gh, lambda r: _norm(unravel(r), sx) <= RTOL, describe, u, h, rows, "h",
+                                 a.h_end, a.dsigma, a.max_points)
     at_end = None
     if reached is not None:  # eG(2) at h_end itself, by exact Newton from the branch's point past it
         u1, n, smin = newton(scene, ctx_of(a.h_end), scheme, u, unravel)
