@@ -13,7 +13,8 @@ tests convergence and the line search); GMRES (`_krylov.gmres`) on its JVP,
 preconditioned by the exact block solve with a condensed tangent (`_tangent`), carried
 along the body's rigid rotation; forcing terms after Eisenstat–Walker with Kelley's
 safeguard; a backtracking line search on the scaled residual norm. The tangent is formed
-when none fits (first step, new step size, failed step) and re-formed when the Krylov
+when none fits (first step, a step size more than `reuse_band` away, failed step, or a
+step of another h that the chord iterations did not finish) and re-formed when the Krylov
 solver needed many iterations or the line search had to backtrack, so one factorization
 serves many iterations and steps. `linear_solver=Direct()` instead forms the tangent at
 every iteration and takes the exact Newton step with it (no Krylov): the robust choice
@@ -80,7 +81,8 @@ class NewtonKrylov(eqx.Module):
       preconditioner for many steps; re-forming it costs ~20 residual evaluations, a
       Krylov vector about one (2D L-shape, refinement 4).
     - `chord`: chord iterations allowed per step before Newton–Krylov (10; 0 disables
-      them). Where the stored tangent fits the step (same h, not stale), each step
+      them). Where the stored tangent fits the step (its h within `reuse_band` of the
+      step's, not stale), each step
       starts with iterations U <- U - P^{-1} R(U) on the stored factorization
       P: one residual and one block solve each, no linearization, no Krylov vectors.
       They go on while the residual (max norm) contracts by `chord_contraction` per
@@ -91,6 +93,20 @@ class NewtonKrylov(eqx.Module):
       does not fit forms one at its predictor and starts with chord iterations too, and
       Newton–Krylov keeps the tangent of its step (see `refresh_after`).
     - `chord_contraction`: the contraction a chord iteration must reach (0.5).
+    - `reuse_band`: the stored tangent also serves a step whose h differs from the h it
+      was formed for by at most this fraction (0.25; 0: the same h only). Such a step
+      starts with chord iterations on it, and if they do not finish the step, Newton–Krylov
+      forms a tangent for the step's own h at once. Adaptive runs change h often (the
+      controller's `keep_band` holds it only for factors in [1, 1.2]); measured on the
+      paper's L-shape, adaptive, same process, three alternating rounds (band 0 -> 0.25):
+      refinement 3 to t = 10 at rtol = atol = 1e-4, eG(1) 6.32 -> 5.03 s (Newton
+      iterations 352 -> 52, chord iterations 1556 -> 4215), eG(2) 3.63 -> 3.50 s, eG(3)
+      4.63 -> 4.36 s; refinement 1 to t = 40, eG(1) at 1e-3 1.13 -> 0.78 s and 1e-4 1.84
+      -> 1.79 s, eG(2) and eG(3) within noise. The same numbers of accepted steps; the
+      controller sees estimates that differ at the Newton tolerance, so step sizes and
+      states can differ by ~1e-6 (`tests/test_solver_options.py`). Without the immediate re-formation, eG(2) and eG(3) ran
+      1.4-1.9 times slower (a tangent of another h is a poor preconditioner for them); a
+      band of 0.5 or of any h did no better. Constant steps never change h: unaffected.
     - `retain`: factorizations of the condensed tangent that stay alive on the host
       (least recently used go first; at most 2 GiB). A run needs one or two; the
       derivative of a run raises it to what its checkpointed segments hold (`replay`).
@@ -105,9 +121,10 @@ class NewtonKrylov(eqx.Module):
     chord_contraction: float = eqx.field(static=True)
     retain: int = eqx.field(static=True)
     stall_limit: int = eqx.field(static=True)
+    reuse_band: float = eqx.field(static=True)
 
     def __init__(self, rtol=1e-10, max_iterations=20, linear_solver=GMRES(), line_search=8, reuse_limit=20, chord=10,
-                 chord_contraction=0.5, retain=RETAIN, stall_limit=2, *, krylov=None, krylov_max_steps=None,
+                 chord_contraction=0.5, retain=RETAIN, stall_limit=2, reuse_band=0.25, *, krylov=None, krylov_max_steps=None,
                  refresh_after=None):
         self.rtol = rtol
         self.max_iterations = max_iterations
@@ -118,6 +135,7 @@ class NewtonKrylov(eqx.Module):
         self.chord_contraction = chord_contraction
         self.retain = retain
         self.stall_limit = stall_limit
+        self.reuse_band = reuse_band
 
     def __check_init__(self):
         if not (0.0 < self.rtol < 1.0):
@@ -128,6 +146,10 @@ class NewtonKrylov(eqx.Module):
             raise ValueError(f"chord must be an integer >= 0 (0: no chord iterations), got {self.chord!r}.")
         if not (0.0 < self.chord_contraction < 1.0):
             raise ValueError(f"chord_contraction must lie in (0, 1), got {self.chord_contraction!r}.")
+        if not (isinstance(self.reuse_band, (int, float)) and not isinstance(self.reuse_band, bool)
+                and 0.0 <= self.reuse_band < 1.0):
+            raise ValueError(f"reuse_band must be a number in [0, 1) (0: a tangent serves its own h only), "
+                             f"got {self.reuse_band!r}.")
         if isinstance(self.stall_limit, bool) or not isinstance(self.stall_limit, int) or self.stall_limit < 0:
             raise ValueError(f"stall_limit must be an integer >= 0 (0: never give a step up early), "
                              f"got {self.stall_limit!r}.")
@@ -202,7 +224,11 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     res = lambda U: res_D(U)[0]  # noqa: E731
     direct = isinstance(solver.linear_solver, Direct)
     lin = solver.linear_solver
-    stale = direct | tangent.stale | (tangent.h != ctx.h)
+    # A tangent formed for another h within `reuse_band` serves the chord iterations; where
+    # they do not finish the step, Newton's first iteration forms one for this h (refresh).
+    mismatch = tangent.h != ctx.h
+    near = jnp.abs(ctx.h / tangent.h - 1.0) <= solver.reuse_band
+    stale = direct | tangent.stale | (mismatch & ~near)
     rotation = body_rotation(scene, ctx.state.x)
 
     def form(U):  # the condensed tangent at U, carried along the body's rotation from here
@@ -291,15 +317,15 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         # 33.2 -> 21.6-26.4 s, none left); and one copy of the formation in the compiled loop
         # instead of two compiles faster (hex8 r8: 83 s with both copies, 58-59 s with this
         # one). The LU path (small meshes) keeps Newton's refresh.
-        tangent = jax.lax.cond(stale, lambda: form(U0), lambda: tangent)
-        stale = jnp.asarray(False)
+        tangent = jax.lax.cond(stale | mismatch, lambda: form(U0), lambda: tangent)
+        stale = mismatch = jnp.asarray(False)
     if solver.chord and not direct:
         chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none)
         U_start, chord_its, chord_done = chord_state["U"], chord_state["it"], chord_state["done"]
     init = dict(U=U_start, R=zero, D=D_none,
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
                 a=jnp.asarray(0.0), n_ls=jnp.asarray(0), it=jnp.asarray(-1), kits=jnp.asarray(0),
-                tan=tangent, refresh=stale, asked=jnp.asarray(False), pending=~chord_done, stall=jnp.asarray(0))
+                tan=tangent, refresh=stale | mismatch, asked=jnp.asarray(False), pending=~chord_done, stall=jnp.asarray(0))
     c = jax.lax.while_loop(lambda c: c["pending"], body, init)
     if chord_state is not None:
         c = dict(c, norm=jnp.where(chord_done, chord_state["norm"], c["norm"]),
