@@ -111,7 +111,8 @@ def position_only(scene, ref, T, args):
     try:
         for k in (int(k) for k in args.orders.split(",")):
             for tol in (float(t) for t in args.tols.split(",")):
-                sol = jv.simulate(scene, jv.eG(k), t1=T, stepsize_controller=jv.PIDController(tol, tol), max_steps=40000)
+                sol = jv.simulate(scene, jv.eG(k), t1=T, stepsize_controller=jv.PIDController(tol, tol),
+                                  max_steps=40000)
                 steps = int(sol.n_steps)
                 c = jv.simulate(scene, jv.eG(k), t1=T, dt0=T / steps, throw=False)
                 rows.append(dict(scheme=f"eG({k})", tol=tol, steps=steps, error_x=run_errors(ref, sol)["x"],

@@ -283,7 +283,8 @@ def test_forward_derivative_along_accepted_steps(lshape):
     eps = 1e-3
     f = [fixed(x0 + s * eps) for s in (1.0, -1.0, 2.0, -2.0)]
     fd = (8 * (f[0] - f[1]) - (f[2] - f[3])) / (12 * eps)
-    print(f"{n} accepted steps; forward mode {float(tangent)!r}, differences {fd!r}, rel. {abs(float(tangent) - fd) / abs(fd):.2e}")
+    print(f"{n} accepted steps; forward mode {float(tangent)!r}, differences {fd!r}, "
+          f"rel. {abs(float(tangent) - fd) / abs(fd):.2e}")
     assert abs(float(tangent) - fd) <= 1e-6 * abs(fd), (float(tangent), fd)
     assert abs(float(value) - float(base.dissipated[-1])) <= 1e-9 * abs(float(base.dissipated[-1]))
 

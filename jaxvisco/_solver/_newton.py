@@ -95,18 +95,19 @@ class NewtonKrylov(eqx.Module):
     - `chord_contraction`: the contraction a chord iteration must reach (0.5).
     - `reuse_band`: the stored tangent also serves a step whose h differs from the h it
       was formed for by at most this fraction (0.25; 0: the same h only). Such a step
-      starts with chord iterations on it, and if they do not finish the step, Newton–Krylov
-      forms a tangent for the step's own h at once. Adaptive runs change h often (the
-      controller's `keep_band` holds it only for factors in [1, 1.2]); measured on the
-      paper's L-shape, adaptive, same process, three alternating rounds (band 0 -> 0.25):
-      refinement 3 to t = 10 at rtol = atol = 1e-4, eG(1) 6.32 -> 5.03 s (Newton
-      iterations 352 -> 52, chord iterations 1556 -> 4215), eG(2) 3.63 -> 3.50 s, eG(3)
-      4.63 -> 4.36 s; refinement 1 to t = 40, eG(1) at 1e-3 1.13 -> 0.78 s and 1e-4 1.84
-      -> 1.79 s, eG(2) and eG(3) within noise. The same numbers of accepted steps; the
-      controller sees estimates that differ at the Newton tolerance, so step sizes and
-      states can differ by ~1e-6 (`tests/test_solver_options.py`). Without the immediate re-formation, eG(2) and eG(3) ran
-      1.4-1.9 times slower (a tangent of another h is a poor preconditioner for them); a
-      band of 0.5 or of any h did no better. Constant steps never change h: unaffected.
+      starts with chord iterations on it, and if they do not finish the step,
+      Newton–Krylov forms a tangent for the step's own h at once. Adaptive runs change h
+      often (the controller's `keep_band` holds it only for factors in [1, 1.2]).
+      Measured on the paper's L-shape, adaptive, same process, three alternating rounds
+      (band 0 -> 0.25): refinement 3 to t = 10 at rtol = atol = 1e-4, eG(1) 6.32 -> 5.03 s
+      (Newton iterations 352 -> 52, chord iterations 1556 -> 4215), eG(2) 3.63 -> 3.50 s,
+      eG(3) 4.63 -> 4.36 s; refinement 1 to t = 40, eG(1) at 1e-3 1.13 -> 0.78 s and at
+      1e-4 1.84 -> 1.79 s, eG(2) and eG(3) within noise; a band of 0.5 about the same.
+      Without the immediate re-formation eG(2) and eG(3) ran 1.4-1.9 times slower (for
+      them a tangent of another h is a poor preconditioner). The runs take the same
+      numbers of accepted steps; the controller sees estimates that differ at the Newton
+      tolerance, so step sizes and states can differ by ~1e-6
+      (`tests/test_solver_options.py`). Constant steps never change h: unaffected.
     - `retain`: factorizations of the condensed tangent that stay alive on the host
       (least recently used go first; at most 2 GiB). A run needs one or two; the
       derivative of a run raises it to what its checkpointed segments hold (`replay`).
@@ -124,8 +125,8 @@ class NewtonKrylov(eqx.Module):
     reuse_band: float = eqx.field(static=True)
 
     def __init__(self, rtol=1e-10, max_iterations=20, linear_solver=GMRES(), line_search=8, reuse_limit=20, chord=10,
-                 chord_contraction=0.5, retain=RETAIN, stall_limit=2, reuse_band=0.25, *, krylov=None, krylov_max_steps=None,
-                 refresh_after=None):
+                 chord_contraction=0.5, retain=RETAIN, stall_limit=2, reuse_band=0.25, *, krylov=None,
+                 krylov_max_steps=None, refresh_after=None):
         self.rtol = rtol
         self.max_iterations = max_iterations
         self.linear_solver = from_legacy(linear_solver, krylov, krylov_max_steps, refresh_after)
@@ -325,7 +326,8 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     init = dict(U=U_start, R=zero, D=D_none,
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
                 a=jnp.asarray(0.0), n_ls=jnp.asarray(0), it=jnp.asarray(-1), kits=jnp.asarray(0),
-                tan=tangent, refresh=stale | mismatch, asked=jnp.asarray(False), pending=~chord_done, stall=jnp.asarray(0))
+                tan=tangent, refresh=stale | mismatch, asked=jnp.asarray(False), pending=~chord_done,
+                stall=jnp.asarray(0))
     c = jax.lax.while_loop(lambda c: c["pending"], body, init)
     if chord_state is not None:
         c = dict(c, norm=jnp.where(chord_done, chord_state["norm"], c["norm"]),
