@@ -105,9 +105,9 @@ class NewtonKrylov(eqx.Module):
       1e-4 1.84 -> 1.79 s, eG(2) and eG(3) within noise; a band of 0.5 about the same.
       Without the immediate re-formation eG(2) and eG(3) ran 1.4-1.9 times slower (for
       them a tangent of another h is a poor preconditioner). The runs take the same
-      numbers of accepted steps; the controller sees estimates that differ at the Newton
-      tolerance, so step sizes and states can differ by ~1e-6
-      (`tests/test_solver_options.py`). Constant steps never change h: unaffected.
+      numbers of accepted steps, or one more or fewer (eG(2), r1, 1e-4: 765 against 766):
+      the controller sees estimates that differ at the Newton tolerance, so step sizes
+      and states can differ by ~1e-6 (`tests/test_solver_options.py`). Constant steps never change h: unaffected.
     - `retain`: factorizations of the condensed tangent that stay alive on the host
       (least recently used go first; at most 2 GiB). A run needs one or two; the
       derivative of a run raises it to what its checkpointed segments hold (`replay`).
