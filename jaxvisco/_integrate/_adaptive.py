@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 
 from .._config import jit
-from .._fem._update import put
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
 from .._time_element._estimate import body_strain, dense_state, scaled_error, uses_end_velocities
@@ -28,7 +27,7 @@ from ._differentiable import (
     record_frame,
     record_substep,
 )
-from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
+from ._frames import at_equilibrium, frame_buffers, frame_fields, step_buffers, write_frame, write_step
 from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
 
 
@@ -154,13 +153,10 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                     save, lambda f: write_frame(f, c["n_saved"], t_next, new, scene.diagnostics(new), dissipated, work),
                     lambda f: f, c["frames"])
                 n_saved = c["n_saved"] + save.astype(int)
-            s = c["steps"]
-            steps = dict(step_t=put(s["step_t"], i, t_next), step_h=put(s["step_h"], i, h_try),
-                         newton_iterations=put(s["newton_iterations"], i, c["its"] + r.iterations),
-                         krylov_iterations=put(s["krylov_iterations"], i, c["kits"] + r.krylov_iterations),
-                         chord_iterations=put(s["chord_iterations"], i, c["chord"] + r.chord_iterations),
-                         residual=put(s["residual"], i, r.residual),
-                         rejections=put(s["rejections"], i, c["rej"]))
+            steps = write_step(c["steps"], i, step_t=t_next, step_h=h_try, newton_iterations=c["its"] + r.iterations,
+                               krylov_iterations=c["kits"] + r.krylov_iterations,
+                               chord_iterations=c["chord"] + r.chord_iterations, residual=r.residual,
+                               rejections=c["rej"])
             return dict(i=i + 1, state=new, t=t_next, v=v_end, vm=vm_end, frames=frames, steps=steps, n_saved=n_saved,
                         dissipated=dissipated, work=work, err1=err, err2=c["err1"],
                         strain=jnp.maximum(c["strain"], strain), its=jnp.asarray(0), kits=jnp.asarray(0),
@@ -179,11 +175,9 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1)
         return out
 
-    zf, zi = jnp.zeros(capacity), jnp.zeros(capacity, dtype=int)
     # the largest strain of the run so far: the unit of atol on the internal variable
     strain0 = jnp.maximum(ctrl.strain_scale, body_strain(scene, state0.x) if state0.gamma is not None else 0.0)
-    steps = dict(step_t=zf, step_h=zf, newton_iterations=zi, krylov_iterations=zi, chord_iterations=zi,
-                 residual=zf, rejections=zi)
+    steps = step_buffers(capacity)
     one, zero = jnp.asarray(1.0), jnp.asarray(0)
     init = dict(i=zero, state=state0, t=jnp.asarray(t0, float), h=jnp.clip(h0, ctrl.dtmin, ctrl.dtmax),
                 v=jnp.where(use_v0, v0, v_state0), vm=v_state0, tan=empty_tangent(scheme, scene, solver), frames=frames,

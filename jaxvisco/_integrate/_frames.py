@@ -55,6 +55,19 @@ def frame_values(state, diag, dissipated, work, with_gamma):
     return out
 
 
+def step_buffers(capacity):
+    """A time loop's per-step records (`Solution.step_t`, `step_h`, the iteration counts,
+    the residual and the rejections), zero for `capacity` steps."""
+    zf, zi = jnp.zeros(capacity), jnp.zeros(capacity, dtype=int)
+    return dict(step_t=zf, step_h=zf, newton_iterations=zi, krylov_iterations=zi, chord_iterations=zi,
+                residual=zf, rejections=zi)
+
+
+def write_step(steps, i, **values):
+    """`steps` (`step_buffers`) with step `i`'s record set: a value for every key."""
+    return {k: put(b, i, values[k]) for k, b in steps.items()}
+
+
 def write_frame(frames, idx, t, state, diag, dissipated, work):
     """`frames` with frame `idx` set."""
     vals = dict(t=t, **frame_values(state, diag, dissipated, work, frames["gamma"] is not None))

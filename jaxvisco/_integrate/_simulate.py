@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._config import _top_level, device_array, jit
-from .._fem._update import put
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
 from .._solver._tangent import empty_tangent, multigrid_arguments, multigrid_scope
@@ -34,7 +33,7 @@ from ._differentiable import (
     segment_length,
 )
 from ._event import AbstractEvent
-from ._frames import at_equilibrium, frame_buffers, frame_fields, write_frame
+from ._frames import at_equilibrium, frame_buffers, frame_fields, step_buffers, write_frame, write_step
 from ._legacy import translate
 from ._saveat import SaveAt
 from ._schedule import AbstractStepSizeController, ConstantStepSize
@@ -337,13 +336,9 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
             return write_frame(frames, c["n_saved"], a["t"], a["state"], scene.diagnostics(a["state"]), dissipated, work)
 
         frames = jax.lax.cond(save, do_save, lambda f: f, c["frames"])
-        steps = c["steps"]
-        steps = dict(step_t=put(steps["step_t"], i, a["t"]), step_h=put(steps["step_h"], i, hs[i]),
-                     newton_iterations=put(steps["newton_iterations"], i, a["its"]),
-                     krylov_iterations=put(steps["krylov_iterations"], i, a["kits"]),
-                     chord_iterations=put(steps["chord_iterations"], i, a["chord"]),
-                     residual=put(steps["residual"], i, a["res"]),
-                     rejections=put(steps["rejections"], i, a["rej"]))
+        steps = write_step(c["steps"], i, step_t=a["t"], step_h=hs[i], newton_iterations=a["its"],
+                           krylov_iterations=a["kits"], chord_iterations=a["chord"], residual=a["res"],
+                           rejections=a["rej"])
         rec = record_frame(a["rec"], c["n_saved"], save)
         return dict(i=i + 1, state=a["state"], t=a["t"], v=a["v"], tan=a["tan"], frames=frames, steps=steps, rec=rec,
                     n_saved=c["n_saved"] + save.astype(int), dissipated=dissipated, work=work, status=status,
@@ -351,9 +346,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
 
     frames = write_frame(frame_buffers(n_frames, t0, state0, diag0, save_gamma), 0, t0, state0, diag0,
                          jnp.asarray(0.0), jnp.asarray(0.0))
-    zeros_f, zeros_i = jnp.zeros(hs.shape[0]), jnp.zeros(hs.shape[0], dtype=int)
-    steps = dict(step_t=zeros_f, step_h=zeros_f, newton_iterations=zeros_i, krylov_iterations=zeros_i, chord_iterations=zeros_i,
-                 residual=zeros_f, rejections=zeros_i)
+    steps = step_buffers(hs.shape[0])
     v_init = jnp.where(use_v0, v0, v_state0)
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene, solver),
                 frames=frames, steps=steps, rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype),
