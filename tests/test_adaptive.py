@@ -32,6 +32,13 @@ def _rms(a):
     return np.sqrt(np.mean(a * a))
 
 
+def _with_eta_dev(scene, log_eta):
+    """`scene` with its deviatoric viscosity exp(`log_eta`)."""
+    import equinox as eqx
+
+    return eqx.tree_at(lambda s: s.material.eta_dev, scene, jnp.exp(log_eta))
+
+
 def _benchmark(name):
     """A module of benchmarks/ (its scene and run helpers)."""
     import importlib
@@ -226,21 +233,17 @@ def test_gradient_along_accepted_steps(lshape):
     """`jax.grad` of a run with a controller differentiates it along its accepted
     steps (step sizes are constants of the derivative): jax.grad against central
     differences of the same fixed step sequence."""
-    import equinox as eqx
-
     ctrl = jv.PIDController(1e-3, 1e-3)
     base = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, solver=TIGHT)
     ts = np.concatenate([[0.0], np.asarray(base.step_t)])
 
-    def with_eta(log_eta):
-        return eqx.tree_at(lambda s: s.material.eta_dev, lshape, jnp.exp(log_eta))
-
     def loss(log_eta):
-        sol = jv.simulate(with_eta(log_eta), jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, solver=TIGHT)
+        sol = jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl,
+                          solver=TIGHT)
         return sol.dissipated[-1]
 
     def fixed(log_eta):
-        sol = jv.simulate(with_eta(log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts), solver=TIGHT)
+        sol = jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts), solver=TIGHT)
         return float(sol.dissipated[-1])
 
     x0 = float(jnp.log(lshape.material.eta_dev))
@@ -260,23 +263,18 @@ def test_forward_derivative_along_accepted_steps(lshape):
     the derivative) and equals fourth-order central differences of the same fixed step
     sequence (`StepTo`), in the dissipated energy at t = 1. The reverse-mode gradient of
     the same run is test_gradient_along_accepted_steps (slow)."""
-    import equinox as eqx
-
     ctrl = jv.PIDController(1e-3, 1e-3)
     base = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, solver=TIGHT)
     n = int(base.n_steps)
     ts = np.concatenate([[0.0], np.asarray(base.step_t)])
     assert n >= 5 and len(np.unique(np.round(np.diff(ts), 12))) >= 3  # steps the controller chose, not one size
 
-    def with_eta(log_eta):
-        return eqx.tree_at(lambda s: s.material.eta_dev, lshape, jnp.exp(log_eta))
-
     def adaptive(log_eta):
-        return jv.simulate(with_eta(log_eta), jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl,
+        return jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl,
                            solver=TIGHT).dissipated[-1]
 
     def fixed(log_eta):
-        return float(jv.simulate(with_eta(log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts),
+        return float(jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts),
                                  solver=TIGHT).dissipated[-1])
 
     x0 = float(jnp.log(lshape.material.eta_dev))

@@ -107,7 +107,8 @@ class NewtonKrylov(eqx.Module):
       them a tangent of another h is a poor preconditioner). The runs take the same
       numbers of accepted steps, or one more or fewer (eG(2), r1, 1e-4: 765 against 766):
       the controller sees estimates that differ at the Newton tolerance, so step sizes
-      and states can differ by ~1e-6 (`tests/test_solver_options.py`). Constant steps never change h: unaffected.
+      and states can differ by ~1e-6 (`tests/test_solver_options.py`). Constant steps
+      never change h: unaffected.
     - `retain`: factorizations of the condensed tangent that stay alive on the host
       (least recently used go first; at most 2 GiB). A run needs one or two; the
       derivative of a run raises it to what its checkpointed segments hold (`replay`).
