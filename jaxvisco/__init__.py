@@ -10,6 +10,7 @@ from ._config import __version__ as __version__
 from ._config import compiler_options as compiler_options
 from ._config import enable_compilation_cache as enable_compilation_cache
 from ._config import require_x64 as require_x64
+from ._export import CacheWarning as CacheWarning
 from ._fem._boundary import boundary_facets as boundary_facets
 from ._fem._boundary import facet_area as facet_area
 from ._fem._boundary import facet_type as facet_type

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._config import device_array, jit
+from .._export import register_type
 from .._scene import State
 
 RUNNING, FAILED, EQUILIBRIUM, DONE, MAX_STEPS = 0, 1, 2, 3, 4
@@ -28,6 +29,7 @@ class SolverError(RuntimeError):
         self.t, self.state, self.solution = t, state, solution
 
 
+@register_type  # a cached time loop returns one (`_export`: rebuilt from its fields, as data)
 class Solution(eqx.Module):
     """Saved frames and per-step solver statistics of a run.
 

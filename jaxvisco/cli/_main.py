@@ -17,6 +17,7 @@ re-exported.
 
 import argparse
 import sys
+import warnings
 
 from ._checks import energy_warning as energy_warning
 from ._chunked import chunk_size as chunk_size
@@ -133,10 +134,14 @@ def main(argv=None):
     import jaxvisco as jv
 
     args = build_parser().parse_args(argv)
-    try:
+    with warnings.catch_warnings(record=True) as refused:  # one line each, not Python's warning format
+        warnings.simplefilter("always", jv.CacheWarning)
         jv.enable_compilation_cache()  # JAXVISCO_CACHE_DIR=DIR elsewhere, =off to disable
-    except OSError as e:
-        print(f"jaxvisco: warning: no compilation cache ({e}); every run compiles afresh", file=sys.stderr)
+    for w in refused:
+        if issubclass(w.category, jv.CacheWarning):
+            print(f"{w.message}".replace("jaxvisco: ", "jaxvisco: warning: ", 1), file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     try:
         return args.func(args)
     except (ValueError, TypeError, FileNotFoundError, OSError, jv.SolverError) as e:
