@@ -167,18 +167,23 @@ def test_gradient_of_a_run_that_halves_its_steps():
     assert np.all(rel <= 1e-6), (g, fd, rel)
 
 
-def test_replay_refuses_a_record_it_cannot_hold():
-    """A run that halved into more sub-steps than its record holds, or a sub-step that
-    did not converge again in the replay, raises instead of returning a wrong derivative
-    (seen on a whole run under jax.jvp: eG(1), h = 0.5, max_iterations = 3, 21 rejected
-    attempts in 2 steps against a record of 18 sub-steps)."""
-    from jaxvisco._integrate._differentiable import Record, check_replay, record_size
+def test_derivative_refuses_what_it_cannot_differentiate():
+    """A run that halved into more sub-steps than its record holds, a sweep whose linear
+    solve did not converge, or a checkpointed sub-step that did not converge again when
+    re-solved, raise instead of returning a wrong derivative (seen on a whole run under
+    jax.jvp: eG(1), h = 0.5, max_iterations = 3, 21 rejected attempts in 2 steps against
+    a record of 18 sub-steps)."""
+    from jaxvisco._integrate._differentiable import KRYLOV_RTOL, Record, check_record, check_sweep, record_size
 
     assert record_size(2) == 18 and record_size(400) == 500
     rec = Record(t=jnp.zeros(4), h=jnp.ones(4), n=jnp.asarray(3), frame_slot=jnp.array([-1, 2]))
-    check = jax.jit(check_replay)
-    np.testing.assert_array_equal(check(rec, jnp.asarray(False), jnp.ones(2)), np.ones(2))
+    check = jax.jit(check_record)
+    np.testing.assert_array_equal(check(rec, jnp.ones(2)), np.ones(2))
     with pytest.raises(Exception, match="more sub-steps than its derivative records"):
-        jax.block_until_ready(check(eqx.tree_at(lambda r: r.n, rec, jnp.asarray(5)), jnp.asarray(False), jnp.ones(2)))
-    with pytest.raises(Exception, match="did not converge when it was replayed"):
-        jax.block_until_ready(check(rec, jnp.asarray(True), jnp.ones(2)))
+        jax.block_until_ready(check(eqx.tree_at(lambda r: r.n, rec, jnp.asarray(5)), jnp.ones(2)))
+    sweep = jax.jit(check_sweep)
+    np.testing.assert_array_equal(sweep(jnp.ones(2), KRYLOV_RTOL, jnp.asarray(False)), np.ones(2))
+    with pytest.raises(Exception, match="linear solve of the derivative did not converge"):
+        jax.block_until_ready(sweep(jnp.ones(2), 1e-6, jnp.asarray(False)))
+    with pytest.raises(Exception, match="did not converge when it was re-solved"):
+        jax.block_until_ready(sweep(jnp.ones(2), 0.0, jnp.asarray(True)))

@@ -19,7 +19,7 @@ from .._config import jit
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
 from .._time_element._estimate import body_strain, dense_state, scaled_error, uses_end_velocities
-from .._time_element._step import end_state, make_context, predictor, step_outcome
+from .._time_element._step import end_state, make_context, predictor, step_outcome, unknowns_like
 from ._differentiable import (
     differentiate,
     empty_record,
@@ -33,16 +33,16 @@ from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
 
 @jit(export=True)
 def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save_every, save_gamma, ts_out,
-                 eq_tol, v0, use_v0, segment, multigrid=None):
+                 eq_tol, v0, use_v0, derivative, multigrid=None):
     """Integrate from `t0` to `t1` with error-controlled steps; at most `capacity`
     accepted steps. Frames: every `save_every`-th accepted step (and the last), or, if
     `ts_out` is an array, at those times (dense output). Returns the `Solution` and the
-    next step size the controller proposes. `segment`: sub-steps per checkpointed
-    segment of its derivative (`_differentiable`); `multigrid`: the hierarchy's index arrays
+    next step size the controller proposes. `derivative`: how a derivative's loop
+    records itself (`_differentiable.Plan`); `multigrid`: the hierarchy's index arrays
     (`multigrid_arguments`), arguments rather than constants of the program."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, ctrl=ctrl, t0=t0, t1=t1, h0=h0, capacity=capacity,
                  save_every=save_every, save_gamma=save_gamma, ts_out=ts_out, eq_tol=eq_tol, use_v0=use_v0,
-                 segment=segment, multigrid=multigrid)
+                 derivative=derivative, multigrid=multigrid)
 
 
 @eqx.filter_custom_jvp
@@ -50,24 +50,24 @@ def _loop(scene, state0, v0, **kw):
     """The adaptive loop; differentiable in the scene, the initial state and the
     predictor's initial velocity along its accepted steps (their sizes are constants of
     the derivative), through the replay of `_differentiable`."""
-    kw.pop("segment")
+    kw.pop("derivative")
     with multigrid_scope(kw["scheme"], scene, kw.pop("multigrid")):
         return _probe(scene, state0, v0, **kw)[:2]
 
 
 @_loop.def_jvp
-def _loop_jvp(primals, tangents, *, segment, multigrid, **kw):
+def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
     del multigrid  # the derivative reads the hierarchy as constants (`_simulate._loop_jvp`)
-    sol, h, rec = _probe(*primals, **kw)
+    sol, h, rec = _probe(*primals, plan=derivative, **kw)
     sol, t_sol = differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"],
-                               use_v0=kw["use_v0"], save_gamma=kw["save_gamma"], segment=segment)
+                               use_v0=kw["use_v0"], save_gamma=kw["save_gamma"])
     return (sol, h), (t_sol, jnp.zeros_like(h))
 
 
 def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, save_every, save_gamma, ts_out, eq_tol,
-           use_v0):
+           use_v0, plan=None):
     """The loop itself: the `Solution`, the next step size and the `Record` of its
-    accepted steps."""
+    accepted steps (with a `Plan`: what a derivative needs of them)."""
     order = scheme.k + 1
     v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
     rates = uses_end_velocities(scheme, scene, state0)
@@ -126,7 +126,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         accept = ok & ((err <= 1.0) | at_min)
         i = c["i"]
         dissipated, work = c["dissipated"] + D, c["work"] + W
-        rec = record_substep(c["rec"], t, h_try, accept)
+        rec = record_substep(c["rec"], t, h_try, accept, U=r.U, state=c["state"], v=c["v"], formed=r.formed)
 
         # Next step size.
         grow = ctrl.accepted_factor(order, err, c["err1"], c["err2"])
@@ -183,7 +183,8 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                 v=jnp.where(use_v0, v0, v_state0), vm=v_state0, tan=empty_tangent(scheme, scene, solver), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
                 status=jnp.asarray(RUNNING), err1=one, err2=one, strain=strain0, its=zero, kits=zero, chord=zero,
-                rej=zero, attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))
+                rej=zero, attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense, plan=plan,
+                                                 state0=state0, U_like=unknowns_like(scheme, scene, state0)))
     c = jax.lax.while_loop(cond, body, init)
     status = jnp.where(c["status"] == RUNNING, FAILED, c["status"])  # attempts exhausted
     return Solution(**frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["i"], status_code=status,

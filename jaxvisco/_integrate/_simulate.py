@@ -19,19 +19,12 @@ from .._config import _top_level, device_array, jit
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
 from .._solver._tangent import empty_tangent, multigrid_arguments, multigrid_scope
-from .._time_element._step import make_context, predictor, step_outcome
+from .._time_element._step import make_context, predictor, step_outcome, unknowns_like
 from .._time_element._time_element import AbstractTimeElement
 from .._validation import check_finite
 from ._adaptive import run_adaptive
 from ._adjoint import RecursiveCheckpointAdjoint
-from ._differentiable import (
-    differentiate,
-    empty_record,
-    record_frame,
-    record_size,
-    record_substep,
-    segment_length,
-)
+from ._differentiable import differentiate, empty_record, plan, record_frame, record_size, record_substep
 from ._event import AbstractEvent
 from ._frames import at_equilibrium, frame_buffers, frame_fields, step_buffers, write_frame, write_step
 from ._legacy import translate
@@ -120,17 +113,11 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
         hs, te = _padded(hs, te, int(max_steps))
     elif _top_level():  # traced callers keep arrays of the run's length
         hs, te = _padded(hs, te, capacity(n_active))
-    segment = _segment(record_size(len(hs)), saveat, adjoint)
+    derivative = plan(adjoint, record_size(len(hs)), saveat.every, integrator, scene)
     sol = _run(scene, integrator, solver, state0, device_array(float(t0)), device_array(hs), device_array(te),
-               device_array(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment,
+               device_array(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, derivative,
                multigrid_arguments(integrator, scene, solver))
     return _finish(sol, integrator, ctrl.max_halvings, throw)
-
-
-def _segment(n_record, saveat, adjoint):
-    """Sub-steps per checkpointed segment of the derivative's replay, for a record of
-    `n_record` sub-steps."""
-    return segment_length(n_record, saveat.every, adjoint.checkpoint_every)
 
 
 def _option(name, value, default, cls, accepted):
@@ -197,7 +184,7 @@ def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solv
                           device_array(h0), cap, saveat.every, saveat.gamma,
                           None if saveat.ts is None else device_array(saveat.ts, float),
                           None if event is None else device_array(float(event.tol)), v0, use_v0,
-                          _segment(cap, saveat, adjoint), multigrid_arguments(integrator, scene, solver))
+                          plan(adjoint, cap, saveat.every, integrator, scene), multigrid_arguments(integrator, scene, solver))
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()
@@ -246,38 +233,39 @@ def _finish(sol, integrator, max_halvings, throw):
 
 @jit(export=True)
 def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0,
-         segment, multigrid=None):
-    """The time loop (`_loop`), compiled. `segment`: sub-steps per checkpointed segment
-    of its derivative (`_differentiable`); `multigrid`: the hierarchy's index arrays
+         derivative, multigrid=None):
+    """The time loop (`_loop`), compiled. `derivative`: how a derivative's loop records
+    itself (`_differentiable.Plan`); `multigrid`: the hierarchy's index arrays
     (`multigrid_arguments`), arguments rather than constants of the program."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, t0=t0, hs=hs, te=te, n_steps=n_steps,
                  save_every=save_every, save_gamma=save_gamma, eq_tol=eq_tol, max_halvings=max_halvings,
-                 use_v0=use_v0, segment=segment, multigrid=multigrid)
+                 use_v0=use_v0, derivative=derivative, multigrid=multigrid)
 
 
 @eqx.filter_custom_jvp
 def _loop(scene, state0, v0, **kw):
     """The loop's `Solution`; differentiable in the scene, the initial state and the
-    predictor's initial velocity through the replay of its sub-steps (`_loop_jvp`)."""
-    kw.pop("segment")
+    predictor's initial velocity along its accepted sub-steps (`_loop_jvp`)."""
+    kw.pop("derivative")
     with multigrid_scope(kw["scheme"], scene, kw.pop("multigrid")):
         return _probe(scene, state0, v0, **kw)[0]
 
 
 @_loop.def_jvp
-def _loop_jvp(primals, tangents, *, segment, multigrid, **kw):
-    # The derivative (the replay of `_differentiable`) reads the multigrid's index arrays
-    # as constants: JAX runs the rules of custom derivatives inside it lazily, possibly
-    # after this rule returned, where arguments passed in by a context would be stale.
+def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
+    # The derivative reads the multigrid's index arrays as constants: JAX runs the rules
+    # of custom derivatives inside it lazily, possibly after this rule returned, where
+    # arguments passed in by a context would be stale.
     del multigrid
-    sol, rec = _probe(*primals, **kw)
+    sol, rec = _probe(*primals, plan=derivative, **kw)
     return differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"], use_v0=kw["use_v0"],
-                         save_gamma=kw["save_gamma"], segment=segment)
+                         save_gamma=kw["save_gamma"])
 
 
 def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings,
-           use_v0):
-    """The loop itself: a `Solution` and the `Record` of its accepted sub-steps."""
+           use_v0, plan=None):
+    """The loop itself: a `Solution` and the `Record` of its accepted sub-steps (with a
+    `Plan`: what a derivative needs of them)."""
     n_frames = 1 + -(-hs.shape[0] // save_every)
     v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
     diag0 = scene.diagnostics(state0, v_state0)
@@ -308,7 +296,8 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
                 its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations, chord=c["chord"] + r.chord_iterations,
                 rej=c["rej"] + jnp.where(ok, 0, 1), D=c["D"] + jnp.where(ok, D, 0.0),
                 W=c["W"] + jnp.where(ok, W, 0.0), res=jnp.maximum(c["res"], jnp.where(ok, r.residual, 0.0)),
-                failed=level > max_halvings, rec=record_substep(c["rec"], c["t"], hs_, ok),
+                failed=level > max_halvings,
+                rec=record_substep(c["rec"], c["t"], hs_, ok, U=r.U, state=c["state"], v=c["v"], formed=r.formed),
             )
 
         init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0), rec=rec,
@@ -349,7 +338,9 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
     steps = step_buffers(hs.shape[0])
     v_init = jnp.where(use_v0, v0, v_state0)
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene, solver),
-                frames=frames, steps=steps, rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype),
+                frames=frames, steps=steps,
+                rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype, plan=plan, state0=state0,
+                                 U_like=unknowns_like(scheme, scene, state0)),
                 n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
                 work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))
     c = jax.lax.while_loop(cond, body, init)

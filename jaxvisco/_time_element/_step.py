@@ -24,6 +24,14 @@ class Unknowns(eqx.Module):
     g: Optional[jax.Array]  # (k, n_cells, nq, 6) or None
 
 
+def unknowns_like(scheme, scene, state):
+    """The shapes and dtypes of a step's `Unknowns` (`jax.ShapeDtypeStruct` leaves)."""
+    k, disc = scheme.k, scene.disc
+    x = jax.ShapeDtypeStruct((k,) + state.x.shape, state.x.dtype)
+    g = None if state.gamma is None else jax.ShapeDtypeStruct((k, disc.n_cells, disc.n_qp, 6), state.x.dtype)
+    return Unknowns(x, g)
+
+
 class StepContext(eqx.Module):
     """What is known when a step starts."""
 
