@@ -48,7 +48,8 @@ def test_simulate_refuses_bad_options_before_compiling(scene):
         (dict(dt0=0.1, stepsize_controller=jv.StepTo([0.0, 0.1])), ValueError, "dt0 = 0.1 conflicts with StepTo"),
         (dict(t0=0.5, stepsize_controller=jv.StepTo([0.0, 0.1])), ValueError,
          "t0 = 0.5 disagrees with the StepTo times"),
-        (dict(t1=1.0, dt0=0.1, saveat=jv.SaveAt([0.5])), ValueError, "needs error-controlled steps"),
+        # fixed steps take SaveAt(ts) too since #60 (frames at the data's own times)
+        (dict(t1=1.0, dt0=0.1, saveat=jv.SaveAt([0.5, 1.5])), ValueError, r"ts must lie within \[t0, t1\]"),
         (dict(t1=1.0, dt0=[(1.0, 0.1)], stepsize_controller=jv.PIDController(1e-3, 1e-3)), ValueError,
          "dt0 is the first step to try"),
         (dict(t1=1.0, saveat=jv.SaveAt([0.5, 2.0]), stepsize_controller=jv.PIDController(1e-3, 1e-3)), ValueError,

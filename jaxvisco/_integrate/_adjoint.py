@@ -34,18 +34,26 @@ class RecursiveCheckpointAdjoint(AbstractAdjoint):
     - `max_bytes`: the memory the stored steps may take (default 1 GiB): 8 bytes per
       number of a step's unknowns, start positions and momenta (the paper's 2D L-shape
       with eG(1): 10 kB a step, so 100 000 steps fit).
+    - `throw`: where the derivative cannot be computed accurately (a run that halved its
+      steps beyond the record's room, a linear solve of the derivative that did not
+      converge, a re-solved step that failed): False (default) makes it NaN, True raises
+      an error that says which. True puts a host callback into the compiled derivative,
+      which JAX's persistent compilation cache does not store.
     - `checkpoint_every`: deprecated (jaxvisco 0.2): frames per checkpointed segment;
       use `checkpoints`.
     """
 
     checkpoints: int = eqx.field(static=True, default=None)
     max_bytes: int = eqx.field(static=True, default=2**30)
+    throw: bool = eqx.field(static=True, default=False)
     checkpoint_every: int = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         _count("checkpoints", self.checkpoints, "number of checkpoints")
         _count("max_bytes", self.max_bytes, "number of bytes")
         _count("checkpoint_every", self.checkpoint_every, "number of frames")
+        if not isinstance(self.throw, (bool, np.bool_)):
+            raise ValueError(f"RecursiveCheckpointAdjoint: throw must be True or False, got {self.throw!r}.")
         if self.checkpoint_every is not None:
             warnings.warn("RecursiveCheckpointAdjoint(checkpoint_every=n) is deprecated; use checkpoints= (a number "
                           "of stored states) or max_bytes=.", DeprecationWarning, stacklevel=3)

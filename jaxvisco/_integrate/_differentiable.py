@@ -45,23 +45,23 @@ from .._fem._krylov import gmres
 from .._fem._tensor import vec_to_sym
 from .._fem._update import put, put_or_drop
 from .._scene import State
+from .._solver._newton import _residual as newton_residual
 from .._solver._newton import _scale, solve_step
 from .._solver._tangent import body_rotation, empty_tangent, form_tangent, schur_solve
 from .._time_element._estimate import polynomial_state, step_polynomial
 from .._time_element._step import (
     Unknowns,
-    carries_dissipation,
     end_state,
     external_work,
     make_context,
     next_velocity,
     predictor,
-    residual,
-    residual_and_dissipation,
+    reaction_force,
+    static_reaction,
     step_dissipation,
     step_outcome,
 )
-from ._frames import frame_values
+from ._frames import diagnostics, frame_values
 
 # Relative residual of the sweeps' linear solves (2-norm of the scaled system) and their
 # Krylov vectors at most (restarted every `KRYLOV_RESTART`).
@@ -78,10 +78,11 @@ BAND = 0.25
 class Plan:
     """How a loop records itself for its derivative (static): ``store`` every sub-step's
     unknowns and start state, or the state at the start of every `segment`-th sub-step
-    (``checkpoint``)."""
+    (``checkpoint``); whether a derivative it cannot compute raises (`throw`)."""
 
     store: bool
     segment: int = 0
+    throw: bool = False
 
 
 class Record(eqx.Module):
@@ -131,21 +132,32 @@ def state_bytes(scene):
 
 def plan(adjoint, n_record, save_every, scheme, scene):
     """The `Plan` of a loop that records `n_record` sub-steps, by `adjoint`
-    (`RecursiveCheckpointAdjoint`): everything where it fits `max_bytes` (and no number
-    of checkpoints is asked for), else segments of ceil(K / checkpoints) sub-steps
-    (default: as many as the budget holds beside a segment's buffer, at least sqrt(K))."""
+    (`RecursiveCheckpointAdjoint`): every sub-step where that fits `max_bytes` (and no
+    number of checkpoints is asked for); else checkpoints every L sub-steps, L chosen to
+    need the least memory (a state per checkpoint and a buffer of L sub-steps:
+    L = sqrt(K * state / step)); `checkpoints=c`: L = ceil(K / c)."""
     per_step, per_state = step_bytes(scheme, scene), state_bytes(scene)
-    ck = adjoint.checkpoints
+    throw = bool(adjoint.throw)
     if adjoint.checkpoint_every is not None:  # jaxvisco 0.2's frames per segment
-        return Plan(False, max(1, min(int(adjoint.checkpoint_every) * int(save_every), n_record)))
+        return Plan(False, max(1, min(int(adjoint.checkpoint_every) * int(save_every), n_record)), throw)
+    ck = adjoint.checkpoints
     if ck is None:
         if n_record * per_step <= adjoint.max_bytes:
-            return Plan(True)
-        seg = max(math.ceil(math.sqrt(n_record)), math.ceil(n_record * per_state / max(adjoint.max_bytes, 1)))
-        return Plan(False, min(seg, n_record))
-    if ck >= n_record:
-        return Plan(True)
-    return Plan(False, max(1, math.ceil(n_record / ck)))
+            return Plan(True, 0, throw)
+        seg = max(1, math.ceil(math.sqrt(n_record * per_state / per_step)))
+    elif ck >= n_record:
+        return Plan(True, 0, throw)
+    else:
+        seg = max(1, math.ceil(n_record / ck))
+    return Plan(False, min(seg, n_record), throw)
+
+
+def plan_bytes(p, n_record, scheme, scene):
+    """Bytes a `Plan` stores for a record of `n_record` sub-steps (the step buffers or the
+    checkpoints, and a segment's buffer)."""
+    if p.store:
+        return n_record * step_bytes(scheme, scene)
+    return -(-n_record // p.segment) * state_bytes(scene) + p.segment * step_bytes(scheme, scene)
 
 
 def empty_record(size, n_frames, dtype, dense=False, plan=None, state0=None, U_like=None):
@@ -203,11 +215,11 @@ def record_dense_frame(rec, frame, slot, s):
 # --- the sub-step as a differentiable map -------------------------------------------------
 def _residual(scheme, scene, state, t, h, U):
     """(R, D_j): the sub-step's residual (its constraint: R = 0) and dissipation, eG's
-    from the same evaluation of its point kernels (`residual_and_dissipation`)."""
+    from the same evaluation of its point kernels. The residual is Newton's program
+    (`_newton._residual`): traced once for the loops and both sweeps."""
     ctx = make_context(scene, state, t, h)
-    if carries_dissipation(scheme, scene):
-        return residual_and_dissipation(scheme, scene, ctx, U)
-    return residual(scheme, scene, ctx, U), step_dissipation(scheme, scene, ctx, U)
+    R, D = newton_residual(scheme, scene, ctx, U)
+    return R, step_dissipation(scheme, scene, ctx, U) if D is None else D
 
 
 def _outputs(scheme, scene, state, t, h, U):
@@ -216,15 +228,25 @@ def _outputs(scheme, scene, state, t, h, U):
     return end_state(scheme, scene, ctx, U), external_work(scheme, scene, ctx, U)
 
 
-def _frame(scene, state, D, W, save_gamma):
-    return frame_values(state, scene.diagnostics(state), D, W, save_gamma)
+def _first_frame(sw, scene, state):
+    """The frame of the initial state (every frame before the first sub-step)."""
+    zero = jnp.zeros((), state.p.dtype)
+    reaction = static_reaction(scene, state, sw.t0) if sw.save_reactions else None
+    return frame_values(state, diagnostics(scene, state), zero, zero, sw.save_gamma, reaction)
 
 
-def _dense_frame(scheme, scene, state, t, h, U, D0, W0, D, W, s, save_gamma):
-    """A frame at the fraction `s` of a sub-step (dense output), as the adaptive loop writes it."""
+def _frame(sw, scene, state, t, h, U, D, W, D0, W0, s):
+    """A frame that sub-step j writes, as a function of (theta, s_j, U_j, D_j, W_j and the
+    cumulative D, W before it): its end state (`s` None), or (dense output) its time
+    polynomial at the fraction `s`, with dissipation and work linear in time within it,
+    and the supports' mean force over it."""
     ctx = make_context(scene, state, t, h)
-    st = polynomial_state(scheme, step_polynomial(scheme, scene, ctx, U), s)
-    return frame_values(st, scene.diagnostics(st), D0 + s * D, W0 + s * W, save_gamma)
+    if s is None:
+        st, s = end_state(sw.scheme, scene, ctx, U), 1.0
+    else:
+        st = polynomial_state(sw.scheme, step_polynomial(sw.scheme, scene, ctx, U), s)
+    reaction = reaction_force(sw.scheme, scene, ctx, U) if sw.save_reactions else None
+    return frame_values(st, diagnostics(scene, st), D0 + s * D, W0 + s * W, sw.save_gamma, reaction)
 
 
 def _end_velocity(scheme, scene, state, t, h, U):
@@ -281,6 +303,9 @@ class _Sweep:
     scheme: object
     solver: object
     save_gamma: bool
+    save_reactions: bool
+    t0: jax.Array
+    throw: bool
 
     @property
     def scene(self):
@@ -365,25 +390,37 @@ def _krylov(matvec, precond, b):
     return gmres(matvec, precond, b, KRYLOV_RTOL, KRYLOV_MAX_STEPS, restart=KRYLOV_RESTART)
 
 
-def check_record(rec, value):
-    """`value`, or a run-time error where the loop halved into more sub-steps than `rec`
+_RECORD = ("jaxvisco: the run halved its steps into more sub-steps than its derivative records; pass a larger "
+           "max_steps (the record holds max_steps + max(16, max_steps // 4) sub-steps).")
+_KRYLOV = ("jaxvisco: a linear solve of the derivative did not converge (GMRES with the condensed tangent of a nearby "
+           "sub-step); the derivative would be inaccurate. Use smaller steps or NewtonKrylov(linear_solver=Direct()).")
+_RESOLVE = ("jaxvisco: a sub-step that converged in the run did not converge when it was re-solved for the derivative "
+            "(checkpointed segments); use smaller steps, other NewtonKrylov tolerances, or give "
+            "RecursiveCheckpointAdjoint a larger max_bytes (no re-solves).")
+
+
+def _refuse(value, bad, message, throw):
+    """`value`, or where `bad`: a run-time error with `message` (`throw`; the program then
+    holds a host callback, which JAX's persistent cache does not store) or NaN in every
+    entry of `value` (no callback)."""
+    if throw:
+        return eqx.error_if(value, bad, message)
+    return jax.tree_util.tree_map(lambda v: jnp.where(bad, jnp.nan, v), value)
+
+
+def check_record(rec, value, throw=True):
+    """`value`, refused (`_refuse`) where the loop halved into more sub-steps than `rec`
     holds (its derivative would be wrong)."""
-    return eqx.error_if(value, rec.n > rec.t.shape[0],
-                        "jaxvisco: the run halved its steps into more sub-steps than its derivative records; "
-                        "pass a larger max_steps (the record holds max_steps + max(16, max_steps // 4) sub-steps).")
+    return _refuse(value, rec.n > rec.t.shape[0], _RECORD, throw)
 
 
-def check_sweep(value, worst, failed):
-    """`value`, or a run-time error where a sweep's linear solve did not converge (its
-    relative residual `worst`) or a checkpointed sub-step did not converge again (`failed`)."""
-    value = eqx.error_if(value, worst > 1e3 * KRYLOV_RTOL,
-                         "jaxvisco: a linear solve of the derivative did not converge (GMRES with the condensed "
-                         "tangent of a nearby sub-step); the derivative would be inaccurate. Use smaller steps or "
-                         "NewtonKrylov(linear_solver=Direct()).")
-    return eqx.error_if(value, failed,
-                        "jaxvisco: a sub-step that converged in the run did not converge when it was re-solved for "
-                        "the derivative (checkpointed segments); use smaller steps, other NewtonKrylov tolerances, "
-                        "or give RecursiveCheckpointAdjoint a larger max_bytes (no re-solves).")
+def check_sweep(rec, value, worst, failed, throw=True):
+    """`value` (what a sweep computed), refused (`_refuse`) where the record overflowed
+    (`check_record`), a linear solve did not converge (its relative residual `worst`) or
+    a checkpointed sub-step did not converge again (`failed`)."""
+    value = check_record(rec, value, throw)
+    value = _refuse(value, worst > 1e3 * KRYLOV_RTOL, _KRYLOV, throw)
+    return _refuse(value, failed, _RESOLVE, throw)
 
 
 def _sweep(sw, a):
@@ -399,8 +436,7 @@ def _sweep(sw, a):
     zero = jnp.zeros((), sw.state0.p.dtype)
     ds0 = State(*(None if p is None else (jnp.zeros_like(p) if t is None else t)
                   for t, p in zip((d_state0.x, d_state0.p, d_state0.gamma), (sw.state0.x, sw.state0.p, sw.state0.gamma))))
-    d_first = jax.jvp(lambda th, s: _frame(split.build(th), s, zero, zero, sw.save_gamma), (theta, sw.state0),
-                      (d_theta, ds0))[1]
+    d_first = jax.jvp(lambda th, s: _first_frame(sw, split.build(th), s), (theta, sw.state0), (d_theta, ds0))[1]
     first = (rec.frame_slot < 0) & live
     frames = jax.tree_util.tree_map(
         lambda v: jnp.where(first.reshape((-1,) + (1,) * v.ndim), v[None], jnp.zeros((n_frames,) + v.shape, v.dtype)),
@@ -424,7 +460,7 @@ def _sweep(sw, a):
                              lambda r: schur_solve(scheme, scene, ctx, tan, _scale_x(r, sx), rotation),
                              jax.tree_util.tree_map(jnp.negative, _scale_x(rhs, 1.0 / sx)))
         dD = rhs_D + lin_U(dU)[1]  # D's tangent, linear in (d_theta, ds, dU)
-        (new, _), (d_new, dW) = jax.jvp(lambda th, s, u: _outputs(scheme, split.build(th), s, t, h, u),
+        _, (d_new, dW) = jax.jvp(lambda th, s, u: _outputs(scheme, split.build(th), s, t, h, u),
                                         (theta, state, U), (d_theta, c["ds"], dU))
         dDc, dWc = c["dD"] + dD, c["dW"] + dW
         dv = jax.lax.cond(j == rec.n - 1,
@@ -437,14 +473,10 @@ def _sweep(sw, a):
 
         def body(q):
             f, fb = q
-            if dense:
-                s_ = rec.frame_s[f]
-                val = jax.jvp(lambda th, st, u, d, w, dc, wc: _dense_frame(
-                    scheme, split.build(th), st, t, h, u, dc, wc, d, w, s_, sw.save_gamma),
-                    (theta, state, U, zero, zero, zero, zero), (d_theta, c["ds"], dU, dD, dW, c["dD"], c["dW"]))[1]
-            else:
-                val = jax.jvp(lambda th, st, d, w: _frame(split.build(th), st, d, w, sw.save_gamma),
-                              (theta, new, zero, zero), (d_theta, d_new, dDc, dWc))[1]
+            s_ = rec.frame_s[f] if dense else None
+            val = jax.jvp(lambda th, st, u, d, w, dc, wc: _frame(sw, split.build(th), st, t, h, u, d, w, dc, wc, s_),
+                          (theta, state, U, zero, zero, zero, zero),
+                          (d_theta, c["ds"], dU, dD, dW, c["dD"], c["dW"]))[1]
             return f + 1, jax.tree_util.tree_map(lambda b_, v: put(b_, f, v), fb, val)
 
         f, fb = jax.lax.while_loop(cond, body, (c["f"], c["frames"]))
@@ -460,7 +492,7 @@ def _sweep(sw, a):
                 dv=jnp.where(sw.use_v0, dv0, dv_state0), f=jnp.sum(first), frames=frames, worst=zero,
                 failed=jnp.asarray(False))
     c, _ = jax.lax.scan(segment, init, jnp.arange(_segments(rec)[0]))
-    return check_sweep((_where_live(live, c["frames"]), c["dv"]), c["worst"], c["failed"])
+    return check_sweep(rec, (_where_live(live, c["frames"]), c["dv"]), c["worst"], c["failed"], sw.throw)
 
 
 def _adjoint_sweep(sw, ct):
@@ -483,7 +515,7 @@ def _adjoint_sweep(sw, ct):
         t, h = rec.t[j], rec.h[j]
         ctx = make_context(scene, state, t, h)
         (R, _), r_vjp = jax.vjp(lambda th, s, u: _residual(scheme, split.build(th), s, t, h, u), theta, state, U)
-        (new, _), o_vjp = jax.vjp(lambda th, s, u: _outputs(scheme, split.build(th), s, t, h, u), theta, state, U)
+        _, o_vjp = jax.vjp(lambda th, s, u: _outputs(scheme, split.build(th), s, t, h, u), theta, state, U)
         tan = jax.lax.cond(ends[j], lambda: _form(sw, ctx, U), lambda: c["tan"])
         lam_s, lam_D, lam_W = c["lam_s"], c["lam_D"], c["lam_W"]
         acc = (_zeros(theta), _zeros(state), _zeros(U))  # cotangents of (theta, s_j, U_j) besides the step's own
@@ -498,30 +530,15 @@ def _adjoint_sweep(sw, ct):
             f = q[0]
             return (f >= 0) & (rec.frame_slot[jnp.maximum(f, 0)] == j)
 
-        dD_in = dW_in = dD_at = dW_at = zero
-        if dense:  # frames inside the sub-step: functions of (theta, s_j, U_j, D_j, W_j, D_cum_j, W_cum_j)
-            def body(q):
-                f, acc, dD, dW, dDc, dWc = q
-                s_ = rec.frame_s[f]
-                _, fv = jax.vjp(lambda th, st, u, d, w, dc, wc: _dense_frame(
-                    scheme, split.build(th), st, t, h, u, dc, wc, d, w, s_, sw.save_gamma),
-                    theta, state, U, zero, zero, zero, zero)
-                g_th, g_s, g_u, g_d, g_w, g_dc, g_wc = fv(jax.tree_util.tree_map(lambda b: b[f], ct_frames))
-                return f - 1, _add(acc, (g_th, g_s, g_u)), dD + g_d, dW + g_w, dDc + g_dc, dWc + g_wc
+        def body(q):  # frames: functions of (theta, s_j, U_j, D_j, W_j, D_cum_j, W_cum_j)
+            f, acc, dD, dW, dDc, dWc = q
+            s_ = rec.frame_s[f] if dense else None
+            _, fv = jax.vjp(lambda th, st, u, d, w, dc, wc: _frame(sw, split.build(th), st, t, h, u, d, w, dc, wc, s_),
+                            theta, state, U, zero, zero, zero, zero)
+            g_th, g_s, g_u, g_d, g_w, g_dc, g_wc = fv(jax.tree_util.tree_map(lambda b: b[f], ct_frames))
+            return f - 1, _add(acc, (g_th, g_s, g_u)), dD + g_d, dW + g_w, dDc + g_dc, dWc + g_wc
 
-            f, acc, dD_in, dW_in, dD_at, dW_at = jax.lax.while_loop(cond, body, (c["f"], acc, zero, zero, zero,
-                                                                                zero))
-        else:  # frames at the sub-step's end: functions of (theta, s_{j+1}, D_cum_{j+1}, W_cum_{j+1})
-            def body(q):
-                f, g_th, g_new, gD, gW = q
-                _, fv = jax.vjp(lambda th, st, d, w: _frame(split.build(th), st, d, w, sw.save_gamma),
-                                theta, new, zero, zero)
-                a, b_, dd, ww = fv(jax.tree_util.tree_map(lambda b: b[f], ct_frames))
-                return f - 1, _add(g_th, a), _add(g_new, b_), gD + dd, gW + ww
-
-            f, g_th, g_new, gD, gW = jax.lax.while_loop(cond, body, (c["f"], _zeros(theta), _zeros(new), zero, zero))
-            acc = (_add(acc[0], g_th), acc[1], acc[2])
-            lam_s, lam_D, lam_W = _add(lam_s, g_new), lam_D + gD, lam_W + gW
+        f, acc, dD_in, dW_in, dD_at, dW_at = jax.lax.while_loop(cond, body, (c["f"], acc, zero, zero, zero, zero))
         o_th, o_s, o_u = o_vjp((lam_s, lam_W + dW_in))
         cot_D = lam_D + dD_in  # D_j feeds every later cumulative value and the dense frames inside it
         d_th, d_s, d_u = r_vjp((_zeros(R), cot_D))
@@ -551,32 +568,33 @@ def _adjoint_sweep(sw, ct):
     # the frames of the initial state (slot -1) and, after no sub-step, the end velocity
     first = (rec.frame_slot < 0) & live
     ct0 = jax.tree_util.tree_map(lambda b: jnp.sum(_where_live(first, b), 0), ct_frames)
-    _, f0 = jax.vjp(lambda th, s: _frame(split.build(th), s, zero, zero, sw.save_gamma), theta, state0)
+    _, f0 = jax.vjp(lambda th, s: _first_frame(sw, split.build(th), s), theta, state0)
     none = rec.n == 0
     _, v_vjp = jax.vjp(lambda th, s: split.build(th).velocity(s.p), theta, state0)
     g_th, g_s = _add(f0(ct0), v_vjp(jnp.where(none & ~sw.use_v0, ct_v, 0.0)))
     out = (_add(c["g"], g_th), _add(c["lam_s"], g_s), jnp.where(none & sw.use_v0, ct_v, 0.0))
-    return check_sweep(out, c["worst"], c["failed"])
+    return check_sweep(rec, out, c["worst"], c["failed"], sw.throw)
 
 
-def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_gamma):
+def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_gamma, save_reactions, t0, throw):
     """The tangent of a loop's `Solution` `sol` (the rule of a `custom_jvp` around a time
     loop that wrote `rec` with a `Plan`): the frames' and the end velocity's, as the
     linear map `_sweep` of `tangents` (of the scene, the initial state and the
-    predictor's initial velocity), whose transpose is `_adjoint_sweep`. Returns `sol`
-    (with the record's capacity check) and its tangent."""
+    predictor's initial velocity), whose transpose is `_adjoint_sweep`. `throw`: a
+    derivative it cannot compute raises (else it is NaN; `_refuse`). Returns `sol` and its
+    tangent."""
     scene, state0, v0 = primals
     t_scene, t_state0, t_v0 = tangents
     split = _Split(scene, t_scene)
     t_state0 = State(None, None, None) if t_state0 is None else t_state0
-    sol = check_record(rec, sol)
     t_sol = jax.tree_util.tree_map(lambda _: None, sol)
     a = (split.tangent, t_state0, t_v0)
     if not jax.tree_util.tree_leaves(a):
         return sol, t_sol
     names = [k for k in ("x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated", "dissipation_rate",
-                         "external_work", "linear_momentum", "angular_momentum") if getattr(sol, k) is not None]
-    sw = _Sweep(rec, split, state0, v0, use_v0, sol.n_saved, scheme, solver, save_gamma)
+                         "external_work", "linear_momentum", "angular_momentum", "reaction")
+             if getattr(sol, k) is not None]
+    sw = _Sweep(rec, split, state0, v0, use_v0, sol.n_saved, scheme, solver, save_gamma, save_reactions, t0, throw)
 
     def solve(_, b):
         return _zeros(b[0]), _sweep(sw, b[0])

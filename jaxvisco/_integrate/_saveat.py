@@ -10,11 +10,11 @@ class SaveAt(eqx.Module):
     """Which frames `simulate` keeps (as diffrax's ``SaveAt``).
 
     **Arguments:**
-    - `ts`: times within ``[t0, t1]`` (non-decreasing), for error-controlled steps
-      (`PIDController`) only: a frame at a time inside a step is the step's own time
-      polynomial there (dense output: positions, momenta and internal variable; no step
-      is shortened to hit it); `dissipated` and `external_work` are exact at step ends
-      and linear in time within a step. Differentiated, a frame follows its step's
+    - `ts`: times within ``[t0, t1]`` (non-decreasing; the sample times of data, say),
+      with fixed or error-controlled steps: a frame at a time inside a step is the step's
+      own time polynomial there (dense output: positions, momenta and internal variable;
+      no step is shortened to hit it); `dissipated` and `external_work` are exact at step
+      ends and linear in time within a step. Differentiated, a frame follows its step's
       polynomial (where in the step it lies is a constant of the derivative, like the
       step sizes).
     - `every`: without `ts`, keep every `every`-th step (default 1; the initial state and
@@ -22,6 +22,9 @@ class SaveAt(eqx.Module):
       halvings are inside it); with a `PIDController`, an accepted step.
     - `gamma`: also keep the internal variable at the frames (default False: it is the
       largest field, and the run's end state needs it only for restarts).
+    - `reactions`: also keep the force the supports exert on every held component
+      (`Solution.reaction`, `Solution.reaction_force`; default False); needs a scene with
+      held components.
 
     The run's last predictor velocity is always returned (`Solution.end_velocity`): a
     restart that passes it as `initial_velocity` repeats the uninterrupted run.
@@ -30,17 +33,20 @@ class SaveAt(eqx.Module):
     ts: np.ndarray = None
     every: int = eqx.field(static=True, default=1)
     gamma: bool = eqx.field(static=True, default=False)
+    reactions: bool = eqx.field(static=True, default=False)
 
-    def __init__(self, ts=None, *, every=1, gamma=False):
+    def __init__(self, ts=None, *, every=1, gamma=False, reactions=False):
         if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
             raise ValueError(f"SaveAt: every must be an integer >= 1, got {every!r}.")
-        if not isinstance(gamma, (bool, np.bool_)):
-            raise ValueError(f"SaveAt: gamma must be True or False, got {gamma!r}.")
+        for name, flag in (("gamma", gamma), ("reactions", reactions)):
+            if not isinstance(flag, (bool, np.bool_)):
+                raise ValueError(f"SaveAt: {name} must be True or False, got {flag!r}.")
         if ts is not None and every != 1:
             raise ValueError(f"SaveAt: give ts or every, not both (got every = {every!r} with ts).")
         self.ts = None if ts is None else checked_times(ts, "SaveAt", 1, strict=False)
         self.every = int(every)
         self.gamma = bool(gamma)
+        self.reactions = bool(reactions)
 
     def check(self, t0, t1):
         if self.ts is not None and (self.ts[0] < t0 or self.ts[-1] > t1):
@@ -48,7 +54,7 @@ class SaveAt(eqx.Module):
                              f"[{self.ts[0]:g}, {self.ts[-1]:g}].")
 
     def __repr__(self):
-        gamma = ", gamma=True" if self.gamma else ""
+        gamma = (", gamma=True" if self.gamma else "") + (", reactions=True" if self.reactions else "")
         if self.ts is None:
             return f"SaveAt(every={self.every}{gamma})"
         return f"SaveAt({self.ts.size} times from {self.ts[0]:g} to {self.ts[-1]:g}{gamma})"

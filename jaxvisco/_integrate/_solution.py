@@ -35,8 +35,11 @@ class Solution(eqx.Module):
 
     Frames (leading axis = saved frame): `t`, `x`, `p`, `gamma` (if asked), `energy` (H),
     `kinetic`, `free_energy`, `dissipated` (cumulative dissipation of the scheme),
-    `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`.
-    Steps: `step_t` (end time), `step_h`, `newton_iterations` (Newton–Krylov
+    `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`, and with
+    ``SaveAt(reactions=True)`` `reaction`: the force the supports exert on each held
+    component (zero on the free ones), the mean over the step that ends at the frame (the
+    time element's discrete reaction; its work is the energy balance's reaction work); at
+    the initial frame the internal minus the external force there. Steps: `step_t` (end time), `step_h`, `newton_iterations` (Newton–Krylov
     iterations), `krylov_iterations`, `chord_iterations` (iterations on the stored
     factorization, `NewtonKrylov(chord=...)`), `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
     one of "done", "equilibrium", "failed", "max_steps" (an adaptive run that used all
@@ -68,6 +71,22 @@ class Solution(eqx.Module):
     integrator: str = eqx.field(static=True, default="")
     end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
     strain_scale: jax.Array | None = None  # adaptive runs: the largest strain reached (restarts: PIDController)
+    reaction: jax.Array | None = None  # SaveAt(reactions=True): the supports' forces (frames, n_nodes, dim)
+
+    def reaction_force(self, nodes=None, component=None):
+        """The resultant force the supports exert, per frame: the nodal `reaction` summed
+        over `nodes` (indices or a boolean mask of the nodes, default all held ones),
+        (frames, dim), or one `component` of it, (frames,). Needs a run with
+        ``SaveAt(reactions=True)``."""
+        if self.reaction is None:
+            raise ValueError("this Solution holds no reaction forces: run simulate with "
+                             "saveat=SaveAt(reactions=True) on a scene with held components.")
+        if nodes is not None:
+            nodes = np.asarray(nodes)
+            nodes = np.flatnonzero(nodes) if nodes.dtype == bool else nodes
+        r = self.reaction if nodes is None else self.reaction[:, nodes]
+        total = jnp.sum(r, axis=1)
+        return total if component is None else total[:, component]
 
     @property
     def status(self):
@@ -77,7 +96,7 @@ class Solution(eqx.Module):
         """Drop the unused tail of the preallocated buffers (host side)."""
         ns, nt = int(self.n_saved), int(self.n_steps)
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
-                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
+                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction")
         out = self
         for name in frames:
             if getattr(self, name) is not None:
