@@ -107,7 +107,8 @@ def test_quadratic_field_is_exact_on_quadratic_elements(name):
     mesh = _straight(name)
     d = mesh.dim
     P = ORIGIN[d] + SIZE[d] * rng.uniform(size=(300, d))
-    c, B, Q = rng.standard_normal(d), np.eye(d) + 0.2 * rng.standard_normal((d, d)), 0.3 * rng.standard_normal((d, d, d))
+    c, B = rng.standard_normal(d), np.eye(d) + 0.2 * rng.standard_normal((d, d))
+    Q = 0.3 * rng.standard_normal((d, d, d))
     Q = 0.5 * (Q + np.swapaxes(Q, 1, 2))
 
     def motion(X):
