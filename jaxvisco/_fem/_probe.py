@@ -93,8 +93,9 @@ class Probe(eqx.Module):
         """
         if not isinstance(mesh, Mesh):
             raise TypeError(f"mesh must be a jaxvisco Mesh, got {type(mesh).__name__}.")
-        if isinstance(points, jax.core.Tracer):
-            raise ValueError("points must be concrete (located on the host), not traced.")
+        if isinstance(points, jax.core.Tracer) or isinstance(mesh.points, jax.core.Tracer):
+            raise ValueError("a Probe is located on the host: build it outside jit/vmap/grad, from "
+                             "concrete points and mesh.")
         P = np.asarray(points, dtype=np.float64)
         if P.ndim == 1:
             P = P[None]
