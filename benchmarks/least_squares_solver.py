@@ -13,14 +13,23 @@
    `jac="fwd"` and a QR solver): XLA's temporary buffers of the compiled programs
    (deterministic), and the run time, for a `scan` (fixed steps) and a `while_loop`
    (adaptive steps) of an explicit ODE with 200 states and p = 3 parameters.
+3. `--compile` (several minutes): XLA's compile time of one least-squares iteration with a
+   `simulate` residual (2D L-shape, eG(1), 20 steps, probe displacements; eta_dev and
+   eta_vol) alone, as `least_squares` compiles it at top level, against the same
+   iteration nested in a `lax.while_loop` (as under `jax.vmap`); fresh processes,
+   alternating.
 """
 
 import argparse
 import itertools
+import json
+import subprocess
+import sys
 import time
 
 from common import machine, write_json  # noqa: I001
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -69,8 +78,9 @@ def evaluations(problem, noisy):
                                  throw=False)
         value = np.asarray(bounds.to_physical(sol.value))
         wall = time.perf_counter() - t0
-        theirs.append(dict(evaluations=int(sol.stats["num_steps"]), converged=bool(sol.result == optx.RESULTS.successful),
-                           wall_s=wall, error=float(np.max(np.abs(value / true - 1)))))
+        theirs.append(dict(evaluations=int(sol.stats["num_steps"]), wall_s=wall,
+                           converged=bool(sol.result == optx.RESULTS.successful),
+                           error=float(np.max(np.abs(value / true - 1)))))
     return dict(ours=ours, optimistix=theirs)
 
 
@@ -133,10 +143,58 @@ def jacobian_cost(loop, repeats):
     return out
 
 
+def _compile_one(mode):
+    """Lower and compile one iteration, alone or in a while_loop; print the seconds."""
+    from jaxvisco._tools import _least_squares as L
+    from jaxvisco._tools._identify import _Run, with_parameters
+
+    scene = jv.scenes.lshape(dim=2)
+    probe = jv.Probe(scene.mesh, [[1.0, 1.0], [2.5, 8.0], [5.5, 2.5]])
+    run = _Run.of(None, 2.0, 0.1, None, jv.SaveAt(every=2))
+
+    def residual(x, data):
+        sc = with_parameters(scene, {"eta_dev": x[0], "eta_vol": x[1]})
+        return probe.displacements(run.simulate(sc, jv.eG(1), jv.NewtonKrylov(rtol=1e-11)).x).ravel() - data
+
+    start = np.array([1.5e5, 1e4 / 3])
+    bounds = make_bounds(start, [0.0, 0.0], None, ["eta_dev", "eta_vol"])
+    problem = L._Problem(residual, None, 50, jnp.zeros(66), jnp.ones(66), bounds,
+                         jnp.asarray([1e-10, 1e-14, 1e-10, 1e-8, 1.0, 2.0, 1 / 64]))
+    z0 = bounds.to_unconstrained(start)
+    f64, i32 = (lambda v: jnp.asarray(v, jnp.float64)), (lambda v: jnp.asarray(v, jnp.int32))  # noqa: E731
+    s0 = L._State(z0, jnp.zeros(66), jnp.zeros((66, 2)), f64(jnp.inf), z0, f64(0.0), f64(1e-2), f64(1.0), i32(0),
+                  i32(0), i32(0), f64(jnp.full(51, jnp.nan)), f64(jnp.full((51, 2), jnp.nan)))
+    if mode == "alone":
+        fn = L._iteration
+    else:
+        def fn(problem, s):
+            return jax.lax.while_loop(lambda s: s.status == 0, lambda s: L._iteration(problem, s), s)
+    t0 = time.perf_counter()
+    lowered = eqx.filter_jit(fn, compiler_options=jv.compiler_options()).lower(problem, s0)
+    t1 = time.perf_counter()
+    lowered.compile()
+    print(json.dumps(dict(mode=mode, trace_s=t1 - t0, compile_s=time.perf_counter() - t1)), flush=True)
+
+
+def compile_cost(pairs):
+    out = []
+    for _ in range(pairs):
+        for mode in ("alone", "while_loop"):
+            proc = subprocess.run([sys.executable, __file__, "--compile-one", mode], capture_output=True, text=True,
+                                  check=True)
+            out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+            print(out[-1], flush=True)
+    return out
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--compile", action="store_true", help="also time compilation with a simulate residual")
+    p.add_argument("--compile-one", choices=["alone", "while_loop"], help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.compile_one:
+        return _compile_one(args.compile_one)
     repeats = 3 if args.quick else 9
     info = machine()
     results = dict(machine=info, evaluations={}, jacobian={})
@@ -156,6 +214,8 @@ def main(argv=None):
         print(f"{loop:10s} primal {r['primal_wall_s_median'] * 1e3:.1f} ms; " + "; ".join(
             f"{k}: temp {v['temp_bytes'] / 1e6:.2f} MB, {v['wall_s_median'] * 1e3:.1f} ms"
             for k, v in r.items() if isinstance(v, dict)))
+    if args.compile:
+        results["compile"] = compile_cost(1 if args.quick else 2)
     write_json("least_squares_solver.json", results)
 
 

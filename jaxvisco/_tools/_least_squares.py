@@ -21,11 +21,13 @@ How it is built, and why (numbers: `benchmarks/least_squares_solver.py`, results
    in every direction it needed 57 and 118 evaluations in all on the benchmark's two
    problems (8 and 16 starts, exact data), optimistix's `LevenbergMarquardt` 82 and
    187; with noise 64 and 128 against 120 and 272.
-3. The iteration is a `lax.while_loop` in one compiled program in which the residual and
-   Jacobian appear once (the first pass evaluates the start), so a fit costs one
-   compilation of the residual and can be `jax.vmap`ped over data sets, noise seeds or
-   start points. Each iteration is one residual + Jacobian evaluation; a rejected trial
-   keeps the last Jacobian.
+3. One iteration (one residual + Jacobian evaluation, its acceptance, the next trial) is
+   one function. Called at top level, `least_squares` compiles it once and drives it from
+   the host; under `jax.vmap` or `jax.jit` (a batch of fits over data sets, noise seeds
+   or start points) it runs in a `lax.while_loop`. Host-driven, XLA compiles the
+   residual's own loops without nesting them in another: nested, the iteration with a
+   20-step `simulate` residual took 1.5-1.8 times as long to compile (`--compile` in the
+   benchmark). A rejected trial keeps the last Jacobian.
 4. Statistics come from the SVD of the column-scaled Jacobian: a rank-deficient Jacobian
    gives finite numbers and flags, never NaN.
 
@@ -40,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from .._config import jit
+from .._config import _top_level, jit
 from ._bounds import make_bounds
 
 RUNNING, XTOL, FTOL, GTOL, ZERO, MAX_STEPS, NOT_FINITE = range(7)
@@ -309,86 +311,103 @@ def _cosine(r, J):
     return jnp.max(jnp.where(ok, jnp.abs(J.T @ r) / jnp.where(ok, norms, 1.0), 0.0))
 
 
-@jit
+class _Problem(eqx.Module):
+    """What every iteration needs: the residual and callback (static), the data, the
+    weights, the bounds and the options."""
+
+    residual: Callable = eqx.field(static=True)
+    callback: Optional[Callable] = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    args: object
+    sigma: jax.Array
+    bounds: object
+    options: jax.Array
+
+
 def _solve(residual, z0, args, sigma, bounds, options, max_steps, callback, names, confidence):
-    xtol, ftol, gtol, rcond, max_relative_error, q, inv_dof = options
-    p = z0.shape[0]
-
-    def evaluate(z):
-        def weighted(z):
-            r = residual(bounds.to_physical(z), args) / sigma
-            return r, r
-
-        J, r = jax.jacfwd(weighted, has_aux=True)(z)
-        return r, J
-
-    def report(accepted, steps, cost, z):
-        if callback is not None:
-
-            def call(accepted, steps, cost, x):
-                if accepted:
-                    callback(int(steps), float(cost), np.asarray(x))
-
-            jax.debug.callback(call, accepted, steps, cost, bounds.to_physical(z))
-
-    def body(s: _State) -> _State:
-        # The residual and Jacobian appear once in the program: the first pass evaluates
-        # the start, every later one a trial step.
-        r, J = evaluate(s.trial)
-        cost = 0.5 * jnp.dot(r, r)
-        finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(J))
-        first = s.evaluations == 0
-        actual = s.cost - cost
-        rho = actual / jnp.where(s.predicted > 0, s.predicted, 1.0)
-        accept = finite & (first | ((s.predicted > 0) & (rho > 1e-4)))
-        # "Delayed gratification" (Transtrum & Sethna 2012): damping / 10 after a success,
-        # x 2 after a failure.
-        lam = jnp.where(first, s.lam, jnp.where(accept, s.lam / 10.0, s.lam * 2.0))
-        z = jnp.where(accept, s.trial, s.z)
-        r = jnp.where(accept, r, s.r)
-        J = jnp.where(accept, J, s.J)
-        cost_new = jnp.where(accept, cost, s.cost)
-        scale = jnp.maximum(jnp.where(first, 0.0, s.scale), jnp.max(_column_norms(J)))
-        steps = s.steps + (accept & ~first)
-        history_cost = jnp.where(accept, jax.lax.dynamic_update_index_in_dim(s.history_cost, cost_new, steps, 0),
-                                 s.history_cost)  # fmt: skip
-        history_z = jnp.where(accept, jax.lax.dynamic_update_index_in_dim(s.history_z, z, steps, 0), s.history_z)
-        evaluations = s.evaluations + 1
-        report(accept & (s.status == RUNNING), steps, cost_new, z)  # (vmap runs stopped fits on)
-
-        # The next trial: the damped Gauss-Newton step, min |J u + r|^2 + lam scale^2 |u|^2
-        # (isotropic in the dimensionless unconstrained variables), by the SVD of
-        # J / scale = U S V^T.
-        S, Vt, g = _scaled_svd(J / scale, r)
-        step = -(Vt.T @ (S / (S**2 + lam) * g)) / scale
-        predicted = 0.5 * jnp.sum(g**2 * (1.0 - (lam / (S**2 + lam)) ** 2))
-        # A step below xtol stops before it is evaluated: z is that close to where the
-        # linear model (or, after rejections, the trust region) puts the optimum.
-        small_step = jnp.all(jnp.abs(step) <= xtol)
-        # The Gauss-Newton decrement |U^T r|^2 / 2: the most the linear model can still
-        # gain, i.e. cost times the squared cosine between r and the range of J.
-        small_cost = 0.5 * jnp.sum(g**2) <= ftol * cost_new
-        status = jnp.select(
-            [first & ~finite, accept & (cost_new == 0), small_cost, accept & (_cosine(r, J) <= gtol), small_step,
-             evaluations > max_steps],
-            [NOT_FINITE, ZERO, FTOL, GTOL, XTOL, MAX_STEPS], RUNNING,
-        )  # fmt: skip
-        return _State(z, r, J, cost_new, z + step, predicted, lam, scale, evaluations, steps, status,
-                      history_cost, history_z)  # fmt: skip
-
-    m = sigma.shape[0]
-    nan = jnp.full(max_steps + 1, jnp.nan)
-    init = _State(
-        z=z0, r=jnp.zeros(m), J=jnp.zeros((m, p)), cost=jnp.asarray(jnp.inf), trial=z0, predicted=jnp.asarray(0.0),
-        lam=jnp.asarray(1e-2), scale=jnp.asarray(1.0), evaluations=jnp.asarray(0), steps=jnp.asarray(0),
-        status=jnp.asarray(RUNNING), history_cost=nan, history_z=jnp.full((max_steps + 1, p), jnp.nan),
+    problem = _Problem(residual, callback, max_steps, args, sigma, bounds, options)
+    m, p = sigma.shape[0], z0.shape[0]
+    # Typed as the iteration returns them (no weak types), or its program is compiled twice.
+    f64 = lambda v: jnp.asarray(v, dtype=jnp.float64)  # noqa: E731
+    i32 = lambda v: jnp.asarray(v, dtype=jnp.int32)  # noqa: E731
+    state = _State(
+        z=f64(z0), r=jnp.zeros(m), J=jnp.zeros((m, p)), cost=f64(jnp.inf), trial=f64(z0), predicted=f64(0.0),
+        lam=f64(1e-2), scale=f64(1.0), evaluations=i32(0), steps=i32(0), status=i32(RUNNING),
+        history_cost=f64(jnp.full(max_steps + 1, jnp.nan)), history_z=f64(jnp.full((max_steps + 1, p), jnp.nan)),
     )  # fmt: skip
-    s = jax.lax.while_loop(lambda s: s.status == RUNNING, body, init)
-    return _statistics(s, bounds, names, confidence, rcond, max_relative_error, q, inv_dof)
+    if _top_level():  # see the module notes (3.)
+        while int(state.status) == RUNNING:
+            state = _iteration_jit(problem, state)
+        return _statistics_jit(problem, state, names, confidence)
+    state = jax.lax.while_loop(lambda s: s.status == RUNNING, lambda s: _iteration(problem, s), state)
+    return _statistics(problem, state, names, confidence)
 
 
-def _statistics(s, bounds, names, confidence, rcond, max_relative_error, q, inv_dof):
+def _iteration(problem: _Problem, s: _State) -> _State:
+    """One residual + Jacobian evaluation (the start, or a trial step), its acceptance,
+    the convergence tests, and the next trial step."""
+    xtol, ftol, gtol = problem.options[0], problem.options[1], problem.options[2]
+    bounds = problem.bounds
+
+    def weighted(z):
+        r = problem.residual(bounds.to_physical(z), problem.args) / problem.sigma
+        return r, r
+
+    J, r = jax.jacfwd(weighted, has_aux=True)(s.trial)
+    cost = 0.5 * jnp.dot(r, r)
+    finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(J))
+    first = s.evaluations == 0
+    rho = (s.cost - cost) / jnp.where(s.predicted > 0, s.predicted, 1.0)
+    accept = finite & (first | ((s.predicted > 0) & (rho > 1e-4)))
+    # "Delayed gratification" (Transtrum & Sethna 2012): damping / 10 after a success,
+    # x 2 after a failure.
+    lam = jnp.where(first, s.lam, jnp.where(accept, s.lam / 10.0, s.lam * 2.0))
+    z = jnp.where(accept, s.trial, s.z)
+    r = jnp.where(accept, r, s.r)
+    J = jnp.where(accept, J, s.J)
+    cost = jnp.where(accept, cost, s.cost)
+    scale = jnp.maximum(jnp.where(first, 0.0, s.scale), jnp.max(_column_norms(J)))
+    steps = s.steps + (accept & ~first).astype(jnp.int32)
+    history_cost = jnp.where(accept, jax.lax.dynamic_update_index_in_dim(s.history_cost, cost, steps, 0),
+                             s.history_cost)  # fmt: skip
+    history_z = jnp.where(accept, jax.lax.dynamic_update_index_in_dim(s.history_z, z, steps, 0), s.history_z)
+    evaluations = s.evaluations + 1
+    if problem.callback is not None:  # (under vmap, iterations of stopped fits run on: not reported)
+        jax.debug.callback(_report(problem.callback), accept & (s.status == RUNNING), steps, cost,
+                           bounds.to_physical(z))  # fmt: skip
+
+    # The next trial: the damped Gauss-Newton step, min |J u + r|^2 + lam scale^2 |u|^2
+    # (isotropic in the dimensionless unconstrained variables), by the SVD of
+    # J / scale = U S V^T.
+    S, Vt, g = _scaled_svd(J / scale, r)
+    step = -(Vt.T @ (S / (S**2 + lam) * g)) / scale
+    predicted = 0.5 * jnp.sum(g**2 * (1.0 - (lam / (S**2 + lam)) ** 2))
+    # A step below xtol stops before it is evaluated: z is that close to where the
+    # linear model (or, after rejections, the trust region) puts the optimum.
+    small_step = jnp.all(jnp.abs(step) <= xtol)
+    # The Gauss-Newton decrement |U^T r|^2 / 2: the most the linear model can still
+    # gain, i.e. cost times the squared cosine between r and the range of J.
+    small_cost = 0.5 * jnp.sum(g**2) <= ftol * cost
+    status = jnp.select(
+        [first & ~finite, accept & (cost == 0), small_cost, accept & (_cosine(r, J) <= gtol), small_step,
+         evaluations > problem.max_steps],
+        [NOT_FINITE, ZERO, FTOL, GTOL, XTOL, MAX_STEPS], RUNNING,
+    ).astype(jnp.int32)  # fmt: skip
+    return _State(z, r, J, cost, z + step, predicted, lam, scale, evaluations, steps, status, history_cost, history_z)
+
+
+def _report(callback):
+    def call(accepted, steps, cost, x):
+        if accepted:
+            callback(int(steps), float(cost), np.asarray(x))
+
+    return call
+
+
+def _statistics(problem: _Problem, s: _State, names, confidence) -> LeastSquaresResult:
     """Gauss-Newton statistics at the final point of the iteration."""
+    rcond, max_relative_error, q, inv_dof = problem.options[3:]
+    bounds = problem.bounds
     z, r, J = s.z, s.r, s.J
     x = bounds.to_physical(z)
     dxdz = jax.jvp(bounds.to_physical, (z,), (jnp.ones_like(z),))[1]
@@ -420,3 +439,7 @@ def _statistics(s, bounds, names, confidence, rcond, max_relative_error, q, inv_
         iterations=s.evaluations - 1, steps=s.steps, status_code=s.status, history_cost=s.history_cost,
         history_values=jax.vmap(bounds.to_physical)(s.history_z), confidence=confidence,
     )  # fmt: skip
+
+
+_iteration_jit = jit(_iteration)
+_statistics_jit = jit(_statistics)
