@@ -27,6 +27,7 @@ from ._fem._generators import rectangle as rectangle
 from ._fem._groups import MeshGroups as MeshGroups
 from ._fem._groups import read_mesh as read_mesh
 from ._fem._mesh import Mesh as Mesh
+from ._fem._probe import Probe as Probe
 from ._integrate._adjoint import AbstractAdjoint as AbstractAdjoint
 from ._integrate._adjoint import (
     RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint,
@@ -80,6 +81,8 @@ from ._tools._drive import drive as drive
 from ._tools._identify import Identification as Identification
 from ._tools._identify import identify as identify
 from ._tools._identify import with_parameters as with_parameters
+from ._tools._least_squares import LeastSquaresResult as LeastSquaresResult
+from ._tools._least_squares import least_squares as least_squares
 from ._tools._ode import SemiDiscrete as SemiDiscrete
 from ._tools._ode import semidiscrete as semidiscrete
 from ._tools._resume import resume as resume
