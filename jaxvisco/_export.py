@@ -260,12 +260,20 @@ class Unstorable(Exception):
 
 
 _TYPES = {}  # name -> class: the output classes an entry may rebuild (`register_type`)
+_WRAPPERS = {}  # name -> class: array wrappers (`register_wrapper`)
 
 
 def register_type(cls):
     """Let stored entries rebuild instances of `cls` (an `equinox.Module` that a cached
     program returns, e.g. `Solution`) from their fields; returns `cls` (a decorator)."""
     _TYPES[f"{cls.__module__}.{cls.__qualname__}"] = cls
+    return cls
+
+
+def register_wrapper(cls):
+    """Let stored entries hold instances of `cls`, a wrapper of one NumPy array (its
+    ``array`` attribute, rebuilt by ``cls(array)``, e.g. `StaticArray`); returns `cls`."""
+    _WRAPPERS[f"{cls.__module__}.{cls.__qualname__}"] = cls
     return cls
 
 
@@ -293,8 +301,8 @@ def _to_data(obj):
     if isinstance(obj, _Leaf):
         return {"leaf": 0}
     name = f"{type(obj).__module__}.{type(obj).__qualname__}"
-    if name == "jaxvisco._fem._space.StaticArray":
-        return {"static_array": _to_data(obj.array)}
+    if _WRAPPERS.get(name) is type(obj):
+        return {"wrapper": name, "array": _to_data(obj.array)}
     if _TYPES.get(name) is type(obj):
         return {"module": name, "fields": {f.name: _to_data(getattr(obj, f.name)) for f in dataclasses.fields(obj)}}
     return _refuse(obj)
@@ -316,6 +324,14 @@ def _from_data(d):
         return [_from_data(o) for o in d["list"]]
     if "dict" in d:
         return {str(k): _from_data(v) for k, v in d["dict"].items()}
+    if "wrapper" in d:
+        cls = _WRAPPERS.get(d["wrapper"])
+        if cls is None:
+            raise ValueError(f"unknown wrapper {d['wrapper']!r}")
+        array = _from_data(d["array"])
+        if not isinstance(array, np.ndarray):
+            raise ValueError("a wrapper holds an array")
+        return cls(array)
     if "array" in d:
         dtype, shape, data = d["array"]
         dtype = np.dtype(dtype)
@@ -325,10 +341,6 @@ def _from_data(d):
         return a.copy()
     if "leaf" in d:
         return _Leaf()
-    if "static_array" in d:
-        from ._fem._space import StaticArray
-
-        return StaticArray(_from_data(d["static_array"]))
     if "module" in d:
         cls = _TYPES.get(d["module"])
         if cls is None:
