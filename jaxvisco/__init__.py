@@ -78,8 +78,20 @@ from ._time_element._time_element import (
 )
 from ._tools._batch import sharded_map as sharded_map
 from ._tools._drive import drive as drive
+from ._tools._experiment import Experiment as Experiment
+from ._tools._experiment import read_csv as read_csv
+from ._tools._identify import PARAMETERS as PARAMETERS
+from ._tools._identify import Fit as Fit
 from ._tools._identify import Identification as Identification
+from ._tools._identify import Parameter as Parameter
 from ._tools._identify import identify as identify
+from ._tools._identify import identify_batch as identify_batch
+from ._tools._observe import AbstractObservable as AbstractObservable
+from ._tools._observe import Custom as Custom
+from ._tools._observe import Displacement as Displacement
+from ._tools._observe import Extensometer as Extensometer
+from ._tools._observe import Quantity as Quantity
+from ._tools._observe import ReactionForce as ReactionForce
 from ._tools._identify import with_parameters as with_parameters
 from ._tools._least_squares import LeastSquaresResult as LeastSquaresResult
 from ._tools._least_squares import least_squares as least_squares

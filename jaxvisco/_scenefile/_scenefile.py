@@ -81,6 +81,12 @@ class SceneFile:
     base_dir: str
     rtol: object = None
     atol: object = None
+    node_groups: object = None  # name -> node indices: the [groups] tables and the mesh file's node groups
+
+    def nodes(self, name):
+        """The node indices of the group `name` (a ``[groups.NAME]`` table or a node
+        group of the mesh file); a `ValueError` naming the groups there are otherwise."""
+        return self.node_groups(name)
 
 
 class _Reader(_MaterialReader, _RunReader):
@@ -186,6 +192,17 @@ class _Reader(_MaterialReader, _RunReader):
             kind = {"facets": "facet or node", "cells": "cell"}.get(key, "node")
             return t.error(key, f"no {kind} group {gname!r}; the mesh has no named groups and {defined}.")
         return t.error(key, f"{' '.join(str(e).split()).rstrip('.')}; {defined}.")
+
+    def node_group(self, gname):
+        """The node indices of one group by name (`SceneFile.nodes`)."""
+        if gname in self.extra:
+            return np.asarray(self.extra[gname])
+        try:
+            return np.asarray(self.groups.node_group(gname))
+        except ValueError:
+            names = sorted(set(self.extra) | set(self.groups.names()["nodes"]))
+            raise ValueError(f"{self.name}: no node group {gname!r}; the scene file has: "
+                             f"{', '.join(names) if names else 'none'}.") from None
 
     def nodes(self, t, key="nodes"):
         """The node indices (sorted, unique) of the groups named by `t[key]`."""
@@ -347,7 +364,8 @@ def read_scene_file(path, *, source=None, base_dir=None) -> SceneFile:
         raise ValueError(f"{name}: not valid TOML: {e}") from None
     r = _Reader(name, doc, os.fspath(base_dir))
     options = r.run_options()
-    return SceneFile(scene=r.scene(), source=source, path=name, base_dir=r.base_dir, **options)
+    return SceneFile(scene=r.scene(), source=source, path=name, base_dir=r.base_dir, node_groups=r.node_group,
+                     **options)
 
 
 def scene_from_file(path):
