@@ -130,7 +130,7 @@ def _cycle(A, Minv, r0, tol, m, budget, recompute, residual=False):
 
 
 def mass_solve(matvec, diag, b, rtol, max_steps=500):
-    """$M^{-1} b$ for the SPD mass matrix `matvec` (diagonal `diag`), by conjugate
+    r"""$M^{-1} b$ for the SPD mass matrix `matvec` (diagonal `diag`), by conjugate
     gradients (`jax.scipy.sparse.linalg.cg`) on the symmetrically Jacobi-scaled system
     $D M D w = D b / s$, $v = s D w$ with $D = diag(M)^{-1/2}$ and $s = \max|D b|$: both
     the residual and the iterates are then O(1), and stopping at a residual 2-norm of
