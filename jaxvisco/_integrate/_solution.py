@@ -36,10 +36,12 @@ class Solution(eqx.Module):
     Frames (leading axis = saved frame): `t`, `x`, `p`, `gamma` (if asked), `energy` (H),
     `kinetic`, `free_energy`, `dissipated` (cumulative dissipation of the scheme),
     `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`, and with
-    ``SaveAt(reactions=True)`` `reaction`: the force the supports exert on each held
-    component (zero on the free ones), the mean over the step that ends at the frame (the
-    time element's discrete reaction; its work is the energy balance's reaction work); at
-    the initial frame the internal minus the external force there. Steps: `step_t` (end time), `step_h`, `newton_iterations` (Newton–Krylov
+    ``SaveAt(reactions=True)`` the force the supports exert on each held component (zero
+    on the free ones): `reaction` at the frame's time (what a load cell reads: the rate of
+    the momenta from the step's time polynomial plus the internal minus the external
+    force), and `reaction_mean`, its mean over the step that ends at the frame (the time
+    element's own discrete reaction, whose work is the energy balance's reaction work);
+    at the initial frame both are the internal minus the external force. Steps: `step_t` (end time), `step_h`, `newton_iterations` (Newton–Krylov
     iterations), `krylov_iterations`, `chord_iterations` (iterations on the stored
     factorization, `NewtonKrylov(chord=...)`), `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
     one of "done", "equilibrium", "failed", "max_steps" (an adaptive run that used all
@@ -72,19 +74,21 @@ class Solution(eqx.Module):
     end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
     strain_scale: jax.Array | None = None  # adaptive runs: the largest strain reached (restarts: PIDController)
     reaction: jax.Array | None = None  # SaveAt(reactions=True): the supports' forces (frames, n_nodes, dim)
+    reaction_mean: jax.Array | None = None  # and their means over the steps that end at the frames
 
-    def reaction_force(self, nodes=None, component=None):
-        """The resultant force the supports exert, per frame: the nodal `reaction` summed
-        over `nodes` (indices or a boolean mask of the nodes, default all held ones),
-        (frames, dim), or one `component` of it, (frames,). Needs a run with
-        ``SaveAt(reactions=True)``."""
+    def reaction_force(self, nodes=None, component=None, mean=False):
+        """The resultant force the supports exert, per frame: the nodal `reaction` (with
+        `mean`: `reaction_mean`) summed over `nodes` (indices or a boolean mask of the
+        nodes, default all held ones), (frames, dim), or one `component` of it, (frames,).
+        Needs a run with ``SaveAt(reactions=True)``."""
         if self.reaction is None:
             raise ValueError("this Solution holds no reaction forces: run simulate with "
                              "saveat=SaveAt(reactions=True) on a scene with held components.")
         if nodes is not None:
             nodes = np.asarray(nodes)
             nodes = np.flatnonzero(nodes) if nodes.dtype == bool else nodes
-        r = self.reaction if nodes is None else self.reaction[:, nodes]
+        r = self.reaction_mean if mean else self.reaction
+        r = r if nodes is None else r[:, nodes]
         total = jnp.sum(r, axis=1)
         return total if component is None else total[:, component]
 
@@ -96,7 +100,8 @@ class Solution(eqx.Module):
         """Drop the unused tail of the preallocated buffers (host side)."""
         ns, nt = int(self.n_saved), int(self.n_steps)
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
-                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction")
+                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction",
+                  "reaction_mean")
         out = self
         for name in frames:
             if getattr(self, name) is not None:

@@ -46,7 +46,10 @@ class AbstractObservable(eqx.Module):
 
 class ReactionForce(AbstractObservable):
     """A load cell: the resultant force the supports exert on the node group `nodes`
-    (indices) in direction `component` (0, 1, 2 or "x", "y", "z"), one column."""
+    (indices) in direction `component` (0, 1, 2 or "x", "y", "z"), one column: the
+    time element's reaction at each sample time, a polynomial of degree k-1 within a
+    step. With eG(1) that is the mean over the step, first order in h; use k >= 2 where
+    forces are fitted."""
 
     nodes: tuple = eqx.field(static=True)
     component: int = eqx.field(static=True)
