@@ -24,7 +24,7 @@ import jaxvisco as jv
 from jaxvisco import ResultsWriter, read_restart, read_results
 from jaxvisco._fem._tensor import sym_to_vec
 from jaxvisco._scene import State
-from jaxvisco._solver._newton import _scale
+from jaxvisco._solver._newton import _scale, force_impulse
 from jaxvisco._time_element._step import Unknowns, end_velocity, make_context, predictor, residual
 from jaxvisco.cli import main
 
@@ -482,7 +482,7 @@ def _newton_scale(scene, x0, p0, g0, x1, g1, t, h, v):
     (predictor velocity v), and the next step's predictor velocity."""
     scheme = jv.eG(1)
     ctx = make_context(scene, State(x0, p0, g0), t, h)
-    sx = _scale(ctx, scene, residual(scheme, scene, ctx, predictor(scheme, scene, ctx, v)))
+    sx = _scale(ctx, scene, residual(scheme, scene, ctx, predictor(scheme, scene, ctx, v)), force_impulse(ctx, scene))
     return sx, end_velocity(scheme, ctx, Unknowns((x1 - x0)[None], sym_to_vec(g1)[None]))
 
 
