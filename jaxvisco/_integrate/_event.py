@@ -13,8 +13,9 @@ class AbstractEvent(eqx.Module):
 class Equilibrium(AbstractEvent):
     """End the run once the body has come to rest (`status == "equilibrium"`).
 
-    The body is at rest when its kinetic energy relative to its rigid-body motion and
-    the energy it dissipated in the last step both fall below `tol` times the run's
+    The body is at rest when its kinetic energy relative to its rigid-body motion (its
+    whole kinetic energy where components are held) and the energy it dissipated in the
+    last step both fall below `tol` times the run's
     energy scale: the largest of the initial total energy $H_0$, the external work done
     so far and the energy dissipated so far. A free body is measured against $H_0$; a
     body that starts at rest and is then loaded ($H_0 = 0$) against the work of its

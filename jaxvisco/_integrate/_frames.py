@@ -9,9 +9,12 @@ from .._scene import Scene
 
 
 def relative_kinetic_energy(scene: Scene, x, p):
-    """Kinetic energy relative to the best-fitting rigid motion (mass-weighted)."""
+    """Kinetic energy relative to the best-fitting rigid motion (mass-weighted); for a
+    body with held components, which cannot move rigidly, the whole kinetic energy."""
     v = scene.velocity(p)
     T = 0.5 * jnp.vdot(p, v)
+    if scene.fixed is not None:
+        return T
     c = jnp.mean(x, axis=0)
     r = x - c
     d = x.shape[-1]
