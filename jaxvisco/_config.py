@@ -26,7 +26,14 @@ __version__ = "0.2.0"  # jaxvisco.__version__ (defined here so that inner layers
 
 
 def require_x64() -> None:
-    """Raise a clear error if JAX is not running in float64."""
+    """Check that JAX computes in float64, as jaxvisco needs (it never switches JAX's
+    precision itself; every `Scene` checks this when it is built).
+
+    **Raises:**
+
+    `RuntimeError` naming the fix (`jax.config.update("jax_enable_x64", True)` or
+    `JAX_ENABLE_X64=1`) when JAX runs in float32.
+    """
     if not jax.config.read("jax_enable_x64"):
         raise RuntimeError(
             "jaxvisco needs float64 but JAX runs in float32. Enable it before building "
@@ -99,19 +106,31 @@ _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_IND
 
 
 @functools.cache
-def compiler_options():
-    """The XLA options jaxvisco compiles its programs with on CPU (none on other backends):
-    those of the CPU options above that this jaxlib knows (they are experimental or may
-    go; probed together, and one by one where that fails: an unknown one is left out), none with
-    ``JAXVISCO_XLA_OPTIONS=off`` (XLA's defaults). Call it outside any JAX transformation
-    (JAX accepts compile options on top-level programs only).
+def compiler_options() -> dict:
+    """The XLA options jaxvisco compiles its own programs with.
 
-    Programs of your own that contain jaxvisco's kernels (an ODE solver around
-    `semidiscrete(scene).vector_field`, a loss around them) want them too:
-    ``jax.jit(f, compiler_options=jaxvisco.compiler_options())``. The point kernels'
-    3x3 products (`_tensor.mm`) are written for XLA's loop emitters; with XLA's defaults
-    one right-hand side of the 2D L-shape costs 66 us instead of 24 us (refinement 1)
-    and 1.51 ms instead of 0.38 ms (refinement 4)."""
+    On CPU: XLA's loop emitters instead of its fusion emitters, single dot products for
+    its YNNPACK library, no tree reductions (each only where this jaxlib knows the
+    option); none on other backends, and none with `JAXVISCO_XLA_OPTIONS=off`. Programs
+    of your own that contain jaxvisco's kernels (an ODE solver around
+    `semidiscrete(scene).vector_field`, a loss around them) want them too: jaxvisco's
+    3x3 products are written for the loop emitters, and with XLA's defaults they cost
+    several times as much (the benchmarks pages have the measurements). Call it outside
+    any JAX transformation (JAX takes compile options for top-level programs only).
+
+    **Returns:**
+
+    A dict for `jax.jit(..., compiler_options=...)`.
+
+    **Example:**
+
+    ```python
+    import jax
+    import jaxvisco as jv
+
+    f = jax.jit(lambda x: 2.0 * x, compiler_options=jv.compiler_options())
+    ```
+    """
     if os.environ.get("JAXVISCO_XLA_OPTIONS", "").strip().lower() in ("off", "0", "none", "default"):
         return {}
     if jax.default_backend() != "cpu":  # measured on CPU only; GPUs want their tree reductions

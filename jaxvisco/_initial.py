@@ -6,11 +6,12 @@ from typing import Optional, Sequence, Union
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 
-def rigid_velocity(points, velocity: Optional[Sequence[float]] = None,
+def rigid_velocity(points: ArrayLike, velocity: Optional[Sequence[float]] = None,
                    angular_velocity: Union[float, Sequence[float], None] = None,
-                   center: Optional[Sequence[float]] = None):
+                   center: Optional[Sequence[float]] = None) -> np.ndarray | jax.Array:
     r"""The nodal velocities of a rigid motion, $v(X) = v_T + \omega \times (X - c)$.
 
     **Arguments:**

@@ -9,6 +9,7 @@ shared corner, mid-edge and face nodes are never duplicated and no node is unuse
 
 import itertools
 import warnings
+from typing import Sequence
 
 import numpy as np
 
@@ -86,7 +87,8 @@ def _grid(counts):
     return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=-1)
 
 
-def rectangle(nx, ny, lx=1.0, ly=1.0, cell_type="quad4", origin=(0.0, 0.0)) -> Mesh:
+def rectangle(nx: int, ny: int, lx: float = 1.0, ly: float = 1.0, cell_type: str = "quad4",
+              origin: Sequence[float] = (0.0, 0.0)) -> Mesh:
     """Structured mesh of the rectangle `origin + [0, lx] x [0, ly]`.
 
     **Arguments:**
@@ -106,7 +108,8 @@ def rectangle(nx, ny, lx=1.0, ly=1.0, cell_type="quad4", origin=(0.0, 0.0)) -> M
     return _from_lattice(_grid(counts), cell_type, spacing, _origin(origin, 2))
 
 
-def box(nx, ny, nz, lx=1.0, ly=1.0, lz=1.0, cell_type="hex8", origin=(0.0, 0.0, 0.0)):
+def box(nx: int, ny: int, nz: int, lx: float = 1.0, ly: float = 1.0, lz: float = 1.0, cell_type: str = "hex8",
+        origin: Sequence[float] = (0.0, 0.0, 0.0)) -> Mesh:
     """Structured mesh of the box `origin + [0, lx] x [0, ly] x [0, lz]`.
 
     **Arguments:**

@@ -2,15 +2,19 @@
 file's ``[groups.NAME]``) and `clamp` (the `Scene(fixed=...)` mask of a scene file's
 ``[[dirichlet]]``: some components of some nodes)."""
 
-from typing import Sequence, Union
+from typing import TYPE_CHECKING, Sequence, Union
 
 import numpy as np
+from jax.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from ._mesh import Mesh
 
 _AXES = "xyz"
 Range = Union[float, Sequence[float], None]
 
 
-def nodes_in(mesh, x: Range = None, y: Range = None, z: Range = None) -> np.ndarray:
+def nodes_in(mesh: "Mesh", x: Range = None, y: Range = None, z: Range = None) -> np.ndarray:
     """The nodes whose coordinates lie in the given ranges.
 
     A node is selected when every coordinate given lies in its inclusive range, with a
@@ -77,7 +81,7 @@ def _range(r, name):
     return a, b
 
 
-def clamp(mesh, nodes, components: Union[str, int, Sequence[Union[str, int]]] = "all") -> np.ndarray:
+def clamp(mesh: "Mesh", nodes: ArrayLike, components: Union[str, int, Sequence[Union[str, int]]] = "all") -> np.ndarray:
     """The mask for `Scene(fixed=...)` that holds some components of some nodes.
 
     Masks combine with `|`: `fixed=jv.clamp(mesh, left) | jv.clamp(mesh, right, "x")`.

@@ -6,8 +6,8 @@ import equinox as eqx
 
 
 class AbstractEvent(eqx.Module):
-    """A condition checked after every (accepted) step; the run ends at the first step
-    where it holds, with ``Solution.status == "equilibrium"``."""
+    """A condition checked after every (accepted) step: the run ends at the first step
+    where it holds. The one event is `Equilibrium`."""
 
 
 class Equilibrium(AbstractEvent):

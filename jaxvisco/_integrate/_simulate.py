@@ -43,11 +43,12 @@ from ._stepsize import PIDController
 
 
 def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] = None, t1: Optional[float] = None,
-             dt0=None, *,
+             dt0: float | None = None, *,
              saveat: Optional[SaveAt] = None, stepsize_controller: Optional[AbstractStepSizeController] = None,
              event: Optional[AbstractEvent] = None, adjoint: Optional[RecursiveCheckpointAdjoint] = None,
              root_finder: Optional[NewtonKrylov] = None, max_steps: Optional[int] = None, throw: bool = True,
-             initial_state: Optional[State] = None, initial_velocity=None, solver: Optional[NewtonKrylov] = None,
+             initial_state: Optional[State] = None, initial_velocity: Optional[jax.Array] = None,
+             solver: Optional[NewtonKrylov] = None,
              **deprecated) -> Solution:
     """Integrate a scene in time: the counterpart of `diffrax.diffeqsolve`.
 

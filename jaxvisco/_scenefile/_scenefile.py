@@ -363,7 +363,8 @@ def _has_node_group(groups, name):
     return True
 
 
-def read_scene_file(path, *, source: Optional[str] = None, base_dir: Optional[str] = None) -> SceneFile:
+def read_scene_file(path: str | os.PathLike, *, source: Optional[str] = None, base_dir: Optional[str] = None
+                    ) -> SceneFile:
     """Read and check a scene file (TOML): the scene and its run settings.
 
     The format is described in the user guide's scene-file page, and

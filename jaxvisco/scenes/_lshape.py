@@ -12,8 +12,9 @@ PAPER = dict(lam=30000.0, mu=7500.0, density=8.93, eta_dev=50000.0, eta_vol=1000
              v_translation=(6.0, 0.0, 0.0), omega=(0.0, 0.0, 0.6))
 
 
-def lshape(dim: int = 2, refinement: int = 1, cell_type: Optional[str] = None, lam=PAPER["lam"], mu=PAPER["mu"],
-           density=PAPER["density"], eta_dev=PAPER["eta_dev"], eta_vol=PAPER["eta_vol"],
+def lshape(dim: int = 2, refinement: int = 1, cell_type: Optional[str] = None, lam: float = PAPER["lam"],
+           mu: float = PAPER["mu"], density: float = PAPER["density"], eta_dev: float = PAPER["eta_dev"],
+           eta_vol: float = PAPER["eta_vol"],
            v_translation: Sequence[float] = PAPER["v_translation"], omega: Sequence[float] = PAPER["omega"],
            viscous: bool = True, quadrature_order: Optional[int] = None, *, element: Optional[str] = None) -> Scene:
     r"""The paper's example: Simo & Tarnow's L-block set free with

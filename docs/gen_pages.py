@@ -1,0 +1,1 @@
+"""Pages generated at build time."""
