@@ -3,7 +3,9 @@ pages render runs (issue #61), so that the documentation cannot rot:
 
 - `python` blocks run, those of one page in order in one namespace (docstrings: each
   object's blocks on their own);
-- `bash` blocks run in bash, with `jaxvisco` the command line of the jaxvisco under test;
+- `bash` blocks run: those of `jaxvisco` commands alone through the command line's `main`
+  in this process, others in bash with `jaxvisco` the command line of the jaxvisco under
+  test;
 - `toml` blocks parse, and those that are scene files (with a `[mesh]`) are read as such;
   `yaml` blocks parse;
 - a block preceded by `<!-- skip: why -->` does not run (install commands, long runs,
@@ -17,8 +19,10 @@ steps), so that the whole file compiles a few programs.
 
 import contextlib
 import inspect
+import io
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -82,7 +86,7 @@ def scratch(tmp_path, monkeypatch):
     for sub in ("data", "scenes"):
         shutil.copytree(os.path.join(ROOT, "examples", sub), tmp_path / "examples" / sub)
     monkeypatch.chdir(tmp_path)
-    keep = {k: jax.config.read(k) for k in ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")}
+    keep = {k: getattr(jax.config, k) for k in ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")}
     import matplotlib
 
     matplotlib.use("Agg")
@@ -111,6 +115,9 @@ def run_block(lang, body, where, namespace, folder, include=None):
                 f"{where}: {include} is shown but not run by tests/test_examples.py"
             return
         exec(compile(body, where, "exec"), namespace)
+    elif lang == "bash" and all(line.startswith("jaxvisco ") for line in body.strip().splitlines()):
+        for line in body.strip().splitlines():
+            run_command(line, where, folder)
     elif lang == "bash":
         env = subprocess_env()
         env["PATH"] = shim(str(folder / ".bin")) + os.pathsep + env["PATH"]
@@ -131,6 +138,27 @@ def run_block(lang, body, where, namespace, folder, include=None):
     else:
         raise AssertionError(f"{where}: a ```{lang or '(no language)'} block runs nowhere; mark it "
                              "<!-- skip: why --> or give it a language that runs")
+
+
+def run_command(line, where, folder):
+    """One `jaxvisco ...` line (with an optional `> FILE`), in this process: the command's
+    `main`, as the console script calls it (no interpreter start-up per line)."""
+    from jaxvisco.cli import main
+
+    argv = shlex.split(line)[1:]
+    out = None
+    if ">" in argv:
+        i = argv.index(">")
+        argv, out = argv[:i], folder / argv[i + 1]
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf):
+            code = main(argv)
+    except SystemExit as e:  # --version, --help
+        code = e.code
+    assert code == 0, f"{where}: `{line}` exited with {code}"
+    if out is not None:
+        out.write_text(buf.getvalue())
 
 
 @pytest.mark.timeout(900)

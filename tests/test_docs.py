@@ -111,7 +111,6 @@ def test_readme_is_short_and_starts_with_the_two_commands():
 def test_docs_build_strict(tmp_path):
     """`mkdocs build --strict`: the whole site, the API pages generated from the
     docstrings and the benchmarks pages from `benchmarks/results/*.json`."""
-    pytest.importorskip("mkdocs")
     env = dict(os.environ, DISABLE_MKDOCS_2_WARNING="true", NO_MKDOCS_2_WARNING="1",
                PYTHONPATH=os.pathsep.join([ROOT] + [p for p in sys.path if p]))
     start = time.perf_counter()

@@ -220,7 +220,7 @@ def test_run_mesh_asks_for_the_material_and_starts_at_rest(tmp_path, capsys):
 
 def test_root_finder_equals_the_deprecated_solver():
     scene = jv.scenes.lshape(dim=2, refinement=1)
-    nk = jv.NewtonKrylov(rtol=1e-11)
+    nk = jv.NewtonKrylov()  # the default: the program the examples compile
     new = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, root_finder=nk)
     with pytest.warns(DeprecationWarning, match=r"solver= is deprecated, use root_finder="):
         old = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, solver=nk)

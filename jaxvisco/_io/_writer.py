@@ -82,7 +82,7 @@ class ResultsWriter:
     scene = jv.scenes.lshape()
     with jv.ResultsWriter("pieces.h5", scene, {"note": "two parts"}, overwrite=True) as w:
         w.write_initial_state()
-        part = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1)
+        part = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, saveat=jv.SaveAt(gamma=True))
         w.append(part, skip_first=True)
     ```
     """
@@ -368,8 +368,8 @@ def save(solution: "Solution", scene: "Scene", path: str | os.PathLike, *, gamma
     import jaxvisco as jv
 
     scene = jv.scenes.lshape()
-    sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1)
-    jv.save(sol, scene, "run.h5", overwrite=True)
+    sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, saveat=jv.SaveAt(gamma=True))
+    jv.save(sol, scene, "run.h5", overwrite=True)   # with Γ, so that resume can continue it
     r = jv.read_results("run.h5")
     ```
     """

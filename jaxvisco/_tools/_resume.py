@@ -60,7 +60,8 @@ def resume(path: str | os.PathLike, scene: Scene, integrator: AbstractTimeElemen
     import jaxvisco as jv
 
     scene = jv.scenes.lshape()
-    jv.save(jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1), scene, "first.h5", overwrite=True)
+    first = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, saveat=jv.SaveAt(gamma=True))
+    jv.save(first, scene, "first.h5", overwrite=True)   # with the internal variable
     more = jv.resume("first.h5", scene, jv.eG(1), t1=0.6, dt0=0.1, append=True)
     ```
     """
