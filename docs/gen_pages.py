@@ -285,7 +285,7 @@ def summary_page(results):
     out = ["# Benchmarks", "",
            "Every number on these pages is read from `benchmarks/results/*.json` when the documentation is built; "
            "the files record the machine, the date, the load and the settings of each run, and the scripts that "
-           "write them are in `benchmarks/` (see [Running the benchmarks](running.md)). Identical runs on the "
+           "write them are in `benchmarks/` (see [the scripts and their measurement log](running.md)). Identical runs on the "
            "shared 2-core machines vary by up to about 1.4 times over minutes, so the files give medians of "
            "repeats or alternating pairs. [Performance notes](notes.md) explains what the numbers mean for the "
            "design.", ""]

@@ -26,6 +26,7 @@ from ._fem._generators import rectangle as rectangle
 from ._fem._groups import MeshGroups as MeshGroups
 from ._fem._groups import read_mesh as read_mesh
 from ._fem._mesh import Mesh as Mesh
+from ._fem._rigid import rigid_velocity as rigid_velocity
 from ._fem._select import clamp as clamp
 from ._fem._select import nodes_in as nodes_in
 from ._integrate._adjoint import AbstractAdjoint as AbstractAdjoint
@@ -45,7 +46,6 @@ from ._integrate._simulate import simulate as simulate
 from ._integrate._solution import Solution as Solution
 from ._integrate._solution import SolverError as SolverError
 from ._integrate._stepsize import PIDController as PIDController
-from ._initial import rigid_velocity as rigid_velocity
 from ._io import Restart as Restart
 from ._io import ResultsWriter as ResultsWriter
 from ._io import read_restart as read_restart

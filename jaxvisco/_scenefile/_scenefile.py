@@ -36,7 +36,6 @@ file, the table and key, the bad value and what is accepted, e.g.
 ``beam.toml: [[load]] 2: nodes: no node group 'tipp'; ...``.
 """
 
-import dataclasses
 import math
 import os
 import warnings
@@ -49,6 +48,7 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
+from ._result import SceneFile as SceneFile
 from ._scenematerial import MaterialReader as _MaterialReader
 from ._scenerun import RunReader as _RunReader
 from ._scenetable import Table as _Table
@@ -60,69 +60,6 @@ _ARRAYS = ("dirichlet", "load", "traction")
 _GENERATOR_KEYS = {"rectangle": ("nx", "ny", "lx", "ly", "origin"),
                    "box": ("nx", "ny", "nz", "lx", "ly", "lz", "origin"), "lshape": ("dim", "refinement")}
 _AXES = "xyz"
-
-
-@dataclasses.dataclass(frozen=True)
-class SceneFile:
-    """A scene file, read and checked: what `read_scene_file` returns.
-
-    **Attributes:**
-
-    - `scene`: the `Scene`.
-    - `integrator`: the time element of ``[integrator]``.
-    - `root_finder`: the `NewtonKrylov` of ``[solver]`` (with its ``[solver.gmres]``).
-    - `t0`, `t1`: the run's start and end (``[time]``).
-    - `dt0`: the constant step, the schedule ``((t_until, dt), ...)``, or with error
-      control the first step tried (None: a hundredth of the run).
-    - `steps`: the `StepTo` of the fixed steps from `t0` to `t1` (None with error control).
-    - `max_halvings`: how often a failed step may be halved.
-    - `rtol`, `atol`: the tolerances of error-controlled steps (None for fixed steps).
-    - `saveat`: the `SaveAt` of ``[saveat]``.
-    - `output`: dict with ``file`` (resolved against the scene file's folder), ``chunk``
-      and ``commit_every`` (``[output]``).
-    - `source`: the file's text; `path`; `base_dir`: where relative paths start.
-    - `deprecated`: one note for each deprecated key the file uses (empty if none).
-
-    The attributes `t_end`, `dt` and `solver` are deprecated names of `t1`, `dt0` and
-    `root_finder`.
-    """
-
-    scene: object
-    integrator: object
-    root_finder: object
-    t0: float
-    t1: float
-    dt0: object
-    steps: object
-    max_halvings: int
-    saveat: object
-    output: dict
-    source: str
-    path: str
-    base_dir: str
-    rtol: object = None
-    atol: object = None
-    deprecated: tuple = ()
-
-    @property
-    def t_end(self):
-        """Deprecated: `t1`."""
-        return _deprecated_attribute(self, "t_end", "t1")
-
-    @property
-    def dt(self):
-        """Deprecated: `dt0`."""
-        return _deprecated_attribute(self, "dt", "dt0")
-
-    @property
-    def solver(self):
-        """Deprecated: `root_finder`."""
-        return _deprecated_attribute(self, "solver", "root_finder")
-
-
-def _deprecated_attribute(sf, old, new):
-    warnings.warn(f"SceneFile.{old} is deprecated, use SceneFile.{new}.", DeprecationWarning, stacklevel=3)
-    return getattr(sf, new)
 
 
 class _Reader(_MaterialReader, _RunReader):
@@ -336,7 +273,7 @@ class _Reader(_MaterialReader, _RunReader):
 
     def initial_velocity(self):
         t = self.table("initial", ("velocity", "angular_velocity", "center", "velocity_field"), required=False)
-        from .._initial import rigid_velocity
+        from .._fem._rigid import rigid_velocity
 
         dim = self.mesh.dim
         if t.has("center") and not t.has("angular_velocity"):

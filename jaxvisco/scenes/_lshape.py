@@ -4,7 +4,7 @@ import warnings
 from typing import Optional, Sequence
 
 from .._fem._generators import lshape_mesh
-from .._initial import rigid_velocity
+from .._fem._rigid import rigid_velocity
 from .._materials import NeoHooke, ReeseGovindjee
 from .._scene import Scene
 

@@ -1,4 +1,4 @@
-"""Initial motion: `rigid_velocity`, the velocity field of a rigid motion (what a scene
+"""Rigid motion of the nodes: `rigid_velocity`, the velocity field of a rigid motion (what a scene
 file's ``[initial]`` table gives with ``velocity``, ``angular_velocity`` and ``center``)."""
 
 from typing import Optional, Sequence, Union
