@@ -167,6 +167,15 @@ def test_scene_file_start_time_and_quadrature(tmp_path):
     sf = read_quietly(tmp_path / "s.toml")
     np.testing.assert_allclose(sf.steps.ts, [1.0, 1.1, 1.2, 1.3], rtol=0, atol=1e-15)
     assert sf.integrator == jv.eG(2, quadrature=4)
+    # the command line runs the file's integrator, its quadrature included (unless overridden)
+    from jaxvisco.cli._options import _run_setup, _scene_file_options
+
+    args = build_parser().parse_args(["run", str(tmp_path / "s.toml"), "--out", str(tmp_path / "s.h5")])
+    sf, _ = _scene_file_options(args)
+    assert _run_setup(args, sf, None)[0] == jv.eG(2, quadrature=4)
+    args = build_parser().parse_args(["run", str(tmp_path / "s.toml"), "--order", "1", "--out", str(tmp_path / "s.h5")])
+    sf, _ = _scene_file_options(args)
+    assert _run_setup(args, sf, None)[0] == jv.eG(1)
     (tmp_path / "s.toml").write_text(text.replace('name = "eG"\norder = 2', 'name = "Midpoint"'))
     with pytest.raises(ValueError, match=r"\[integrator\]: quadrature: Midpoint has no quadrature"):
         read_quietly(tmp_path / "s.toml")

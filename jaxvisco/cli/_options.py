@@ -129,6 +129,9 @@ def _run_setup(args, sf, restart):
         raise FileExistsError(f"results file {args.out!r} exists; pass --overwrite to replace it, or continue it "
                               f"with --resume {args.out}.")
     integrator = make_integrator(args.integrator, args.order)
+    if sf is not None and type(integrator) is type(sf.integrator) and getattr(integrator, "k", 1) == \
+            getattr(sf.integrator, "k", 1):
+        integrator = sf.integrator  # the file's, with its [integrator] quadrature
     if sf is not None:
         scene = sf.scene
     else:
