@@ -10,6 +10,7 @@ from ._config import __version__ as __version__
 from ._config import compiler_options as compiler_options
 from ._config import enable_compilation_cache as enable_compilation_cache
 from ._config import require_x64 as require_x64
+from ._export import CacheWarning as CacheWarning
 from ._fem._boundary import boundary_facets as boundary_facets
 from ._fem._boundary import facet_area as facet_area
 from ._fem._boundary import facet_type as facet_type
@@ -29,6 +30,7 @@ from ._fem._mesh import Mesh as Mesh
 from ._fem._rigid import rigid_velocity as rigid_velocity
 from ._fem._select import clamp as clamp
 from ._fem._select import nodes_in as nodes_in
+from ._fem._probe import Probe as Probe
 from ._integrate._adjoint import AbstractAdjoint as AbstractAdjoint
 from ._integrate._adjoint import (
     RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint,
@@ -79,9 +81,23 @@ from ._time_element._time_element import (
 )
 from ._tools._batch import sharded_map as sharded_map
 from ._tools._drive import drive as drive
+from ._tools._experiment import Experiment as Experiment
+from ._tools._experiment import read_csv as read_csv
+from ._tools._identify import PARAMETERS as PARAMETERS
+from ._tools._identify import Fit as Fit
 from ._tools._identify import Identification as Identification
+from ._tools._identify import Parameter as Parameter
 from ._tools._identify import identify as identify
+from ._tools._identify import identify_batch as identify_batch
+from ._tools._observe import AbstractObservable as AbstractObservable
+from ._tools._observe import Custom as Custom
+from ._tools._observe import Displacement as Displacement
+from ._tools._observe import Extensometer as Extensometer
+from ._tools._observe import Quantity as Quantity
+from ._tools._observe import ReactionForce as ReactionForce
 from ._tools._identify import with_parameters as with_parameters
+from ._tools._least_squares import LeastSquaresResult as LeastSquaresResult
+from ._tools._least_squares import least_squares as least_squares
 from ._tools._ode import SemiDiscrete as SemiDiscrete
 from ._tools._ode import semidiscrete as semidiscrete
 from ._tools._resume import resume as resume

@@ -12,6 +12,7 @@ or set the environment variable ``JAX_ENABLE_X64=1``. The command line does this
 jaxvisco's own compiled programs (`jit`) are compiled with `compiler_options()`.
 """
 
+import contextlib
 import functools
 import os
 import threading
@@ -53,30 +54,72 @@ def default_cache_dir():
     return os.path.join(base, "jaxvisco")
 
 
-def enable_compilation_cache(path=None):
+def enable_compilation_cache(path=None, *, shared=None):
     """Keep the time loops on disk, so that a new process neither traces nor compiles
     them again: JAX's persistent compilation cache holds the compiled programs, and
-    ``jaxvisco-export/`` inside it the traced ones (`jax.export`, see `_export`). The
-    paper's L-shape, eG(1): first `simulate` call 7.8 s in a fresh process, 0.7 s in
-    the next ones (2-core CPU, `benchmarks/startup.py`).
+    ``jaxvisco-export/`` inside it the traced ones (`jax.export`, as data: a JSON header
+    and the serialized program, never a pickle).
 
-    `path`: the cache directory (default `default_cache_dir()`, which honours
-    ``JAXVISCO_CACHE_DIR``; ``JAXVISCO_CACHE_DIR=off`` turns it off). Call it once,
-    before the first `simulate`; it sets JAX's ``jax_compilation_cache_dir`` for the
-    whole process, and JAX's ``jax_persistent_cache_min_compile_time_secs`` to 0: every
-    program is cached, not only those that took a second to compile (JAX's default). The
-    dozens of small programs around the loops (array slicing, diagnostics, the results
-    writer) each compile in ~10-70 ms; `jaxvisco paper --quick` compiled 113 of them for
-    6.3 s in every process that found the loops in the cache.
-    The ``jaxvisco`` command calls it for you. **Returns:** the directory, or None.
+    **Trust.** A cache entry is a program this process runs, so whoever can write to the
+    directory can run code as you. The directory is created private (mode 0700), and a
+    directory that another user owns, or that group or others can write to (or a parent
+    of it, unless sticky like ``/tmp``), is refused with a `CacheWarning` naming it and
+    the fix; the run then goes on without the cache.
+
+    **Arguments:**
+    - `path`: the cache directory (default `default_cache_dir()`, which honours
+      ``JAXVISCO_CACHE_DIR``; ``JAXVISCO_CACHE_DIR=off`` turns it off).
+    - `shared`: True to use a directory that others can write to on purpose (a group
+      cache on a cluster): you then trust everyone who can write there. Default: the
+      environment variable ``JAXVISCO_CACHE_SHARED=1``, else False.
+
+    Call it once, before the first `simulate`; it sets JAX's ``jax_compilation_cache_dir``
+    for the whole process, and JAX's ``jax_persistent_cache_min_compile_time_secs`` to 0:
+    every program is cached, also the many small ones around the time loops that each
+    compile in milliseconds. The ``jaxvisco`` command calls it for you.
+
+    **Returns:** the directory, or None (off, refused, or not creatable; never raises
+    for those).
     """
+    import warnings
+
     path = default_cache_dir() if path is None else os.path.expanduser(os.fspath(path))
     if path is None:
         return None
-    os.makedirs(path, exist_ok=True)
+    if shared is None:
+        shared = os.environ.get("JAXVISCO_CACHE_SHARED", "").strip().lower() in ("1", "true", "yes", "on")
+    try:
+        _make_private(path)
+    except OSError as e:
+        warnings.warn(f"jaxvisco: no compilation cache: cannot create {path} ({e.strerror or e}); every run "
+                      f"compiles afresh.", _export.CacheWarning, stacklevel=2)
+        return None
+    if shared:
+        _export.trust(path)
+    else:
+        reason = _export.unsafe_reason(path)
+        if reason is not None:
+            warnings.warn(f"jaxvisco: compilation cache not used: {reason}. {_export._FIX}.", _export.CacheWarning,
+                          stacklevel=2)
+            return None
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path
+
+
+def _make_private(path):
+    """Create `path` and each missing directory above it with mode 0700."""
+    missing = []
+    p = os.path.abspath(path)
+    while not os.path.isdir(p):
+        missing.append(p)
+        up = os.path.dirname(p)
+        if up == p:
+            break
+        p = up
+    for p in reversed(missing):
+        with contextlib.suppress(FileExistsError):  # another process made it meanwhile
+            os.mkdir(p, 0o700)
 
 
 # XLA options for jaxvisco's own programs on CPU, each measured on its time loops:

@@ -23,23 +23,37 @@ stored with the entry; loading it builds them again and checks their keys.
 
 Entries are written to a temporary file and renamed into place (a killed process leaves
 no partial entry); an entry that does not load is ignored and written again.
+Entries hold data, never code: a small header in JSON (the name, the full key, the host
+patterns, the static part and structure of the output, described by `_to_data`: numbers,
+strings, containers, arrays and the registered output classes) and the serialized
+program (`jax.export`'s flatbuffer). Nothing read back from disk is unpickled, and an
+entry whose header names anything else, whose key is not the one asked for, or that
+does not parse is a miss. JAX's own entries in the same directory are compiled programs;
+`_config.enable_compilation_cache` therefore only uses a directory that no other user
+can write (see `safe_directory`).
 """
 
+import base64
 import contextlib
+import dataclasses
 import functools
 import hashlib
 import importlib.metadata
 import io
+import json
 import os
 import pickle
+import stat
 import sys
 import threading
 import types
 
 import equinox as eqx
 import jax
+import numpy as np
 
-_FORMAT = 1
+_FORMAT = 2
+_MAGIC = b"JVX2\n"  # then 8 bytes of header length, the JSON header, the serialized program
 _SAFE_MODULES = ("jaxvisco", "equinox", "jax", "jaxlib", "numpy", "builtins", "math", "operator", "functools",
                  "collections", "typing", "enum", "dataclasses", "abc", "copyreg")
 _LU_TARGETS = ("jaxvisco_lu_factor", "jaxvisco_lu_solve")
@@ -156,43 +170,225 @@ def _versions():  # ~3 ms of package metadata lookups: once per process, not per
 
 def directory():
     """Where exported programs go: ``jaxvisco-export`` in JAX's persistent cache
-    directory, or None while that cache is off or ``JAXVISCO_EXPORT=off``."""
+    directory, or None while that cache is off, ``JAXVISCO_EXPORT=off``, or the
+    directory is one that others could write (`unsafe_reason`; warned once)."""
     base = jax.config.jax_compilation_cache_dir
     if not base or os.environ.get("JAXVISCO_EXPORT", "").strip().lower() in ("off", "0", "none"):
         return None
-    return os.path.join(base, "jaxvisco-export")
+    folder = os.path.join(base, "jaxvisco-export")
+    reason = None if base in _TRUSTED else unsafe_reason(folder if os.path.isdir(folder) else base)
+    if reason is not None:
+        if base not in _WARNED:
+            _WARNED.add(base)
+            import warnings
+
+            warnings.warn(f"jaxvisco: traced programs are not cached: {reason}. {_FIX}.", CacheWarning, stacklevel=3)
+        return None
+    return folder
+
+
+class CacheWarning(UserWarning):
+    """A compilation cache directory was refused (others could write to it)."""
+
+
+_TRUSTED = set()  # directories declared shared and trusted (`enable_compilation_cache(shared=True)`)
+_WARNED = set()
+_FIX = ("Fix: `chmod 700` it (and its parents: no write access for group or others) or choose another "
+        "JAXVISCO_CACHE_DIR; a deliberately shared cache needs enable_compilation_cache(path, shared=True) "
+        "or JAXVISCO_CACHE_SHARED=1, and trusts everyone who can write to it")
+
+
+def trust(path):
+    """Use `path` even where others can write to it (`enable_compilation_cache(shared=True)`)."""
+    _TRUSTED.add(os.fspath(path))
+
+
+def _owner(uid):
+    try:
+        import pwd
+
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except (ImportError, KeyError):
+        return f"uid {uid}"
+
+
+def unsafe_reason(path):
+    """Why the directory `path` must not hold programs that this process will run, or
+    None. Whoever can write a cache entry can run code as every user of the cache (JAX's
+    entries are compiled machine code), so, as ssh's StrictModes does for key files: the
+    directory must belong to this user and be writable by nobody else, and each directory
+    above it must belong to this user or root and be writable by nobody else unless its
+    sticky bit is set (``/tmp``: others cannot rename what is ours). No check where the
+    platform has no user ids."""
+    if not hasattr(os, "getuid"):
+        return None
+    uid = os.getuid()
+    real = os.path.realpath(path)
+    try:
+        st = os.stat(real)
+    except OSError as e:
+        return f"{path} cannot be read ({e.strerror})"
+    mode = stat.S_IMODE(st.st_mode)
+    if st.st_uid != uid:
+        return f"{path} (mode {mode:o}) is owned by {_owner(st.st_uid)}, not by you"
+    if mode & 0o022:
+        return f"{path} (mode {mode:o}, owner {_owner(st.st_uid)}) is writable by group or others"
+    parent = os.path.dirname(real)
+    while True:
+        st = os.stat(parent)
+        pmode = stat.S_IMODE(st.st_mode)
+        if st.st_uid not in (uid, 0):
+            return f"{path}: its parent {parent} (mode {pmode:o}) is owned by {_owner(st.st_uid)}"
+        if pmode & 0o022 and not pmode & stat.S_ISVTX:
+            return f"{path}: its parent {parent} (mode {pmode:o}, owner {_owner(st.st_uid)}) is writable by group or others"
+        up = os.path.dirname(parent)
+        if up == parent:
+            return None
+        parent = up
 
 
 def _key(name, static, skeleton, options):
-    env = sorted((k, v) for k, v in os.environ.items() if k.startswith("JAXVISCO_") and k != "JAXVISCO_CACHE_DIR")
+    env = sorted((k, v) for k, v in os.environ.items()
+                 if k.startswith("JAXVISCO_") and k not in ("JAXVISCO_CACHE_DIR", "JAXVISCO_CACHE_SHARED"))
     head = (_FORMAT, name, _source_digest(), _versions(), sys.version_info[:2], bool(jax.config.read("jax_enable_x64")),
             jax.default_backend(), env, sorted(options.items()))
     return hashlib.sha256(pickle.dumps(head, protocol=4) + _dumps((static, skeleton))).hexdigest()
 
 
-def _write(path, entry):
-    os.makedirs(os.path.dirname(path), exist_ok=True)
+class Unstorable(Exception):
+    """A part of an entry that `_to_data` cannot describe as data."""
+
+
+_TYPES = {}  # name -> class: the output classes an entry may rebuild (`register_type`)
+_WRAPPERS = {}  # name -> class: array wrappers (`register_wrapper`)
+
+
+def register_type(cls):
+    """Let stored entries rebuild instances of `cls` (an `equinox.Module` that a cached
+    program returns, e.g. `Solution`) from their fields; returns `cls` (a decorator)."""
+    _TYPES[f"{cls.__module__}.{cls.__qualname__}"] = cls
+    return cls
+
+
+def register_wrapper(cls):
+    """Let stored entries hold instances of `cls`, a wrapper of one NumPy array (its
+    ``array`` attribute, rebuilt by ``cls(array)``, e.g. `StaticArray`); returns `cls`."""
+    _WRAPPERS[f"{cls.__module__}.{cls.__qualname__}"] = cls
+    return cls
+
+
+def _to_data(obj):
+    """`obj` as JSON-ready data: None, bools, numbers, strings, tuples, lists, dicts with
+    string keys, numeric NumPy arrays, `StaticArray`-like wrappers, output placeholders and
+    the registered classes (by their fields). Anything else raises `Unstorable`."""
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, (int, float)) and type(obj) in (int, float):
+        return obj
+    if isinstance(obj, np.generic):
+        return _to_data(np.asarray(obj)[()].item()) if obj.dtype.kind in "biuf" else _refuse(obj)
+    if isinstance(obj, tuple) and type(obj) is tuple:
+        return {"tuple": [_to_data(o) for o in obj]}
+    if isinstance(obj, list) and type(obj) is list:
+        return {"list": [_to_data(o) for o in obj]}
+    if isinstance(obj, dict) and type(obj) is dict and all(isinstance(k, str) for k in obj):
+        return {"dict": {k: _to_data(v) for k, v in obj.items()}}
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind not in "biuf" or obj.dtype.byteorder == ">":
+            _refuse(obj)
+        a = np.ascontiguousarray(obj)
+        return {"array": [a.dtype.str, list(a.shape), base64.b64encode(a.tobytes()).decode("ascii")]}
+    if isinstance(obj, _Leaf):
+        return {"leaf": 0}
+    name = f"{type(obj).__module__}.{type(obj).__qualname__}"
+    if _WRAPPERS.get(name) is type(obj):
+        return {"wrapper": name, "array": _to_data(obj.array)}
+    if _TYPES.get(name) is type(obj):
+        return {"module": name, "fields": {f.name: _to_data(getattr(obj, f.name)) for f in dataclasses.fields(obj)}}
+    return _refuse(obj)
+
+
+def _refuse(obj):
+    raise Unstorable(f"{type(obj).__module__}.{type(obj).__qualname__}")
+
+
+def _from_data(d):
+    """The inverse of `_to_data`; raises `ValueError` on anything it does not describe."""
+    if d is None or isinstance(d, (bool, int, float, str)):
+        return d
+    if not isinstance(d, dict) or len(d) not in (1, 2):
+        raise ValueError("not an entry's data")
+    if "tuple" in d:
+        return tuple(_from_data(o) for o in d["tuple"])
+    if "list" in d:
+        return [_from_data(o) for o in d["list"]]
+    if "dict" in d:
+        return {str(k): _from_data(v) for k, v in d["dict"].items()}
+    if "wrapper" in d:
+        cls = _WRAPPERS.get(d["wrapper"])
+        if cls is None:
+            raise ValueError(f"unknown wrapper {d['wrapper']!r}")
+        array = _from_data(d["array"])
+        if not isinstance(array, np.ndarray):
+            raise ValueError("a wrapper holds an array")
+        return cls(array)
+    if "array" in d:
+        dtype, shape, data = d["array"]
+        dtype = np.dtype(dtype)
+        if dtype.kind not in "biuf":
+            raise ValueError(f"array of {dtype}")
+        a = np.frombuffer(base64.b64decode(data, validate=True), dtype=dtype).reshape([int(n) for n in shape])
+        return a.copy()
+    if "leaf" in d:
+        return _Leaf()
+    if "module" in d:
+        cls = _TYPES.get(d["module"])
+        if cls is None:
+            raise ValueError(f"unknown class {d['module']!r}")
+        names = [f.name for f in dataclasses.fields(cls)]
+        fields = d["fields"]
+        if sorted(fields) != sorted(names):
+            raise ValueError(f"fields of {d['module']} differ")
+        obj = object.__new__(cls)
+        for n in names:  # the fields as data, no __init__, __setstate__ or any code of the entry's choosing
+            object.__setattr__(obj, n, _from_data(fields[n]))
+        return obj
+    raise ValueError("not an entry's data")
+
+
+def _write(path, header, program):
+    """Store an entry atomically: a temporary file renamed into place."""
+    os.makedirs(os.path.dirname(path), mode=0o700, exist_ok=True)
+    head = json.dumps(header, separators=(",", ":"), allow_nan=False).encode()
     tmp = f"{path}.{os.getpid()}.tmp"
     try:
         with open(tmp, "wb") as f:
-            pickle.dump(entry, f, protocol=4)
+            f.write(_MAGIC + len(head).to_bytes(8, "little") + head + program)
         os.replace(tmp, path)
     finally:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
 
 
-def _load(path):
+def _load(path, key):
+    """The entry stored at `path` for `key`, or None (a miss: absent, damaged, foreign,
+    of another key or format)."""
     try:
         with open(path, "rb") as f:
-            entry = pickle.load(f)
-        if entry.get("format") != _FORMAT:
+            blob = f.read()
+        if not blob.startswith(_MAGIC):
             return None
+        n = int.from_bytes(blob[len(_MAGIC):len(_MAGIC) + 8], "little")
+        start = len(_MAGIC) + 8
+        header = json.loads(blob[start:start + n].decode())
+        if not isinstance(header, dict) or header.get("format") != _FORMAT or header.get("key") != key:
+            return None
+        entry = {k: _from_data(header[k]) for k in ("patterns", "pattern_keys", "out_static", "out_skeleton")}
         builders = _builders()
         entry["hosts"] = [builders[b](*a) for b, a in entry["patterns"]]  # alive while the entry is
         if [h.key for h in entry["hosts"]] != entry["pattern_keys"]:
             return None
-        entry["exported"] = jax.export.deserialize(bytearray(entry["hlo"]))
+        entry["exported"] = jax.export.deserialize(bytearray(blob[start + n:]))
         return entry
     except Exception:  # noqa: BLE001 - a damaged or foreign entry is a miss
         return None
@@ -252,7 +448,7 @@ def call(fn, name, args, kwargs, options):
     entry = _memory.get(key)
     path = os.path.join(folder, f"{name}-{key[:32]}.jvx")
     if entry is None and os.path.exists(path):
-        entry = _load(path)
+        entry = _load(path, key)
         stats["loaded"] += entry is not None
     if entry is None:
         try:
@@ -263,9 +459,11 @@ def call(fn, name, args, kwargs, options):
             raise Uncacheable(f"jax.export refused the program: {e!r}") from e
         stats["exported"] += 1
         try:
-            _write(path, {k: v for k, v in entry.items() if k not in ("exported", "hosts")})
-        except (OSError, pickle.PicklingError, TypeError, AttributeError):
-            pass  # a read-only or full cache directory: run without storing
+            header = dict(format=_FORMAT, name=name, key=key,
+                          **{k: _to_data(entry[k]) for k in ("patterns", "pattern_keys", "out_static", "out_skeleton")})
+            _write(path, header, entry["hlo"])
+        except (OSError, Unstorable, ValueError):
+            pass  # a read-only or full cache directory, or an output it cannot describe: run without storing
     _memory[key] = entry
     runner = entry.get("runner")
     if runner is None:

@@ -48,7 +48,8 @@ def test_simulate_refuses_bad_options_before_compiling(scene):
         (dict(dt0=0.1, stepsize_controller=jv.StepTo([0.0, 0.1])), ValueError, "dt0 = 0.1 conflicts with StepTo"),
         (dict(t0=0.5, stepsize_controller=jv.StepTo([0.0, 0.1])), ValueError,
          "t0 = 0.5 disagrees with the StepTo times"),
-        (dict(t1=1.0, dt0=0.1, saveat=jv.SaveAt([0.5])), ValueError, "needs error-controlled steps"),
+        # fixed steps take SaveAt(ts) too since #60 (frames at the data's own times)
+        (dict(t1=1.0, dt0=0.1, saveat=jv.SaveAt([0.5, 1.5])), ValueError, r"ts must lie within \[t0, t1\]"),
         (dict(t1=1.0, dt0=[(1.0, 0.1)], stepsize_controller=jv.PIDController(1e-3, 1e-3)), ValueError,
          "dt0 is the first step to try"),
         (dict(t1=1.0, saveat=jv.SaveAt([0.5, 2.0]), stepsize_controller=jv.PIDController(1e-3, 1e-3)), ValueError,
@@ -67,7 +68,7 @@ def test_old_keywords_are_deprecated_aliases_of_the_same_run(scene):
     naming the replacements; an old keyword with its replacement is refused."""
     new = jv.simulate(scene, jv.eG(1), t1=0.4,
                       stepsize_controller=jv.Schedule([(0.2, 0.1), (0.4, 0.2)], max_halvings=3), saveat=jv.SaveAt(every=2, gamma=True), event=jv.Equilibrium(1e-12),
-                      adjoint=jv.RecursiveCheckpointAdjoint(checkpoint_every=2), max_steps=8)
+                      adjoint=jv.RecursiveCheckpointAdjoint(checkpoints=2), max_steps=8)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         old = jv.simulate(scene, jv.eG(1), t_end=0.4, dt=[(0.2, 0.1), (0.4, 0.2)], max_halvings=3, save_every=2,
@@ -76,7 +77,7 @@ def test_old_keywords_are_deprecated_aliases_of_the_same_run(scene):
     msgs = [str(w.message) for w in caught if issubclass(w.category, DeprecationWarning)]
     assert len(msgs) == 1
     for name, replacement in [("t_end", "t1="), ("dt", "Schedule"), ("save_every", "SaveAt(every=n)"),
-                              ("stop_at_equilibrium", "Equilibrium(tol)"), ("checkpoint_every", "checkpoint_every=n")]:
+                              ("stop_at_equilibrium", "Equilibrium(tol)"), ("checkpoint_every", "RecursiveCheckpointAdjoint(checkpoints=n)")]:
         assert f"{name}= is deprecated, use" in msgs[0] and replacement in msgs[0]
     np.testing.assert_array_equal(np.asarray(new.t), [0.0, 0.2, 0.4])
     for field in ("t", "x", "p", "gamma", "energy", "dissipated", "step_h"):

@@ -1,6 +1,7 @@
 """Traced programs kept on disk (`jaxvisco._export`): what the key sees, what it refuses,
 and damaged entries. The second-process round trip of the time loop is in test_host_lu."""
 
+import json
 import math
 import os
 
@@ -100,3 +101,149 @@ def test_pattern_recorder_is_per_thread():
         assert mine == [("position_pattern", ("mine",))]
     finally:
         _export._recorder.patterns = None
+
+
+class _Planted:
+    """A pickle that, if ever loaded, leaves a marker file (the reproduction of #63)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+def _use_cache_dir(path):
+    prev = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    _export.clear()
+    return prev
+
+
+def test_planted_entries_are_never_executed(tmp_path):
+    """Entries hold data, never a pickle: a planted pickle with a side effect, random
+    bytes, and a header naming a class outside the registered outputs are each a miss
+    (the entry is traced and written again), and nothing of them runs."""
+    import pickle
+
+    cache = tmp_path / "cache"
+    cache.mkdir(mode=0o700)
+    marker = tmp_path / "marker"
+    prev = _use_cache_dir(cache)
+    try:
+        expected = np.asarray(_scaled(jnp.arange(4.0), 2))
+        (entry,) = os.listdir(cache / "jaxvisco-export")
+        path = cache / "jaxvisco-export" / entry
+        good = path.read_bytes()
+        assert good.startswith(_export._MAGIC)
+        n = int.from_bytes(good[len(_export._MAGIC):len(_export._MAGIC) + 8], "little")
+        start = len(_export._MAGIC) + 8
+        header = json.loads(good[start:start + n])
+        header["out_skeleton"] = {"module": "os.system", "fields": {}}  # a well-formed entry naming code
+        head = json.dumps(header).encode()
+        forged = _export._MAGIC + len(head).to_bytes(8, "little") + head + good[start + n:]
+        rng = np.random.default_rng(0)
+        for planted in (pickle.dumps(_Planted(marker)), rng.bytes(4096), forged):
+            path.write_bytes(planted)
+            _export.clear()
+            before = dict(_export.stats)
+            np.testing.assert_array_equal(_scaled(jnp.arange(4.0), 2), expected)
+            assert not marker.exists()
+            assert _export.stats["loaded"] == before["loaded"]
+            assert _export.stats["exported"] == before["exported"] + 1  # a miss: traced again, stored again
+            assert path.read_bytes().startswith(_export._MAGIC)
+    finally:
+        jax.config.update("jax_compilation_cache_dir", prev)
+        _export.clear()
+
+
+def test_entry_data_round_trip():
+    """What an entry stores of a time loop's output: the `Solution`'s static part and
+    structure, rebuilt from data as the same object."""
+    scene = jv.scenes.lshape(2, 1)
+    sol = jv.simulate(scene, jv.eG(1), t1=0.2, dt0=0.1)
+    dyn, static = eqx.partition((sol, jnp.zeros(())), eqx.is_array)
+    skeleton = jax.tree_util.tree_map(lambda _: _export._Leaf(), dyn)
+    for obj in (static, skeleton):
+        back = _export._from_data(json.loads(json.dumps(_export._to_data(obj))))
+        assert jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(obj)
+    back = _export._from_data(json.loads(json.dumps(_export._to_data(static))))
+    assert back[0].integrator == sol.integrator and isinstance(back[0], jv.Solution)
+    cells = scene.disc.cells
+    assert _export._from_data(_export._to_data((cells, 3, None))) == (cells, 3, None)
+    for bad in (_outside_jaxvisco, object(), np.array(["a"]), {1: 2}):
+        with pytest.raises(_export.Unstorable):
+            _export._to_data(bad)
+
+
+def test_a_directory_others_can_write_is_refused(tmp_path, monkeypatch):
+    """A cache directory writable by group or others (or below a parent that is, with no
+    sticky bit) is refused with one warning that names it, its mode and owner and the
+    fix; nothing is cached and runs go on. `shared=True` opts in deliberately."""
+    monkeypatch.delenv("JAXVISCO_CACHE_SHARED", raising=False)
+    prev = jax.config.jax_compilation_cache_dir
+    open_dir = tmp_path / "open"
+    open_dir.mkdir()
+    os.chmod(open_dir, 0o777)
+    below = tmp_path / "wide"
+    below.mkdir()
+    os.chmod(below, 0o777)
+    (below / "cache").mkdir(mode=0o700)
+    sticky = tmp_path / "sticky"
+    sticky.mkdir()
+    os.chmod(sticky, 0o1777)
+    try:
+        with pytest.warns(jv.CacheWarning) as w:
+            assert jv.enable_compilation_cache(open_dir) is None
+        (msg,) = [str(x.message) for x in w]
+        assert str(open_dir) in msg and "777" in msg and "owner" in msg and "chmod 700" in msg and "\n" not in msg
+        assert jax.config.jax_compilation_cache_dir == prev
+        with pytest.warns(jv.CacheWarning, match="parent .*wide"):
+            assert jv.enable_compilation_cache(below / "cache") is None
+        assert jv.enable_compilation_cache(sticky / "cache") == str(sticky / "cache")  # like /tmp
+        # pointed at it through JAX's own option: jaxvisco stores no traced program there
+        _use_cache_dir(open_dir)
+        before = dict(_export.stats)
+        with pytest.warns(jv.CacheWarning, match="not cached"):
+            np.testing.assert_array_equal(_scaled(jnp.arange(3.0), 1), [0.0, 1.0, 3.0])
+        assert _export.stats == before and not (open_dir / "jaxvisco-export").exists()
+        # a shared cache, deliberately
+        assert jv.enable_compilation_cache(open_dir, shared=True) == str(open_dir)
+        _export.clear()
+        np.testing.assert_array_equal(_scaled(jnp.arange(3.0), 1), [0.0, 1.0, 3.0])
+        assert _export.stats["exported"] == before["exported"] + 1
+    finally:
+        _export._TRUSTED.discard(str(open_dir))
+        jax.config.update("jax_compilation_cache_dir", prev)
+        _export.clear()
+
+
+def test_a_new_default_directory_is_private(tmp_path, monkeypatch):
+    monkeypatch.delenv("JAXVISCO_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "a" / "b"))
+    prev = jax.config.jax_compilation_cache_dir
+    try:
+        path = jv.enable_compilation_cache()
+        assert path == str(tmp_path / "a" / "b" / "jaxvisco")
+        for p in (tmp_path / "a", tmp_path / "a" / "b", tmp_path / "a" / "b" / "jaxvisco"):
+            assert os.stat(p).st_mode & 0o777 == 0o700, p
+    finally:
+        jax.config.update("jax_compilation_cache_dir", prev)
+        _export.clear()
+
+
+def test_the_command_line_says_so_in_one_line(tmp_path, monkeypatch, capsys):
+    from jaxvisco.cli import main
+
+    open_dir = tmp_path / "open"
+    open_dir.mkdir()
+    os.chmod(open_dir, 0o777)
+    monkeypatch.setenv("JAXVISCO_CACHE_DIR", str(open_dir))
+    monkeypatch.delenv("JAXVISCO_CACHE_SHARED", raising=False)
+    prev = jax.config.jax_compilation_cache_dir
+    try:
+        assert main(["scene-template"]) == 0
+    finally:
+        jax.config.update("jax_compilation_cache_dir", prev)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jaxvisco: warning: compilation cache not used:") and str(open_dir) in err[0]

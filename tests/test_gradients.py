@@ -26,13 +26,13 @@ def _with(scene, theta):
                        (jnp.exp(theta[0]), jnp.exp(theta[1]), theta[2] * base.v0))
 
 
-def _loss_fn(scheme, checkpoint_every=None):
+def _loss_fn(scheme, checkpoints=None):
     scene = _scene()
 
     def loss(theta):
         # A plain call: every run is differentiable (halving and early stop stay on).
         sol = jv.simulate(_with(scene, theta), scheme, t1=N_STEPS * H, dt0=H,
-                          adjoint=jv.RecursiveCheckpointAdjoint(checkpoint_every=checkpoint_every), solver=SOLVER)
+                          adjoint=jv.RecursiveCheckpointAdjoint(checkpoints=checkpoints), solver=SOLVER)
         # Dissipated energy and final free energy (sensitive to both viscosities) and a
         # position functional (sensitive to the initial velocity).
         X = scene.x0
@@ -47,10 +47,10 @@ def _theta0():
 
 
 @functools.lru_cache(maxsize=None)
-def _grad(scheme, checkpoint_every=None):
+def _grad(scheme, checkpoints=None):
     """Compiled reverse-mode gradient of the loss (compilation dominates these tests, so
     the programs are shared by the tests of one scheme)."""
-    return eqx.filter_jit(jax.grad(_loss_fn(scheme, checkpoint_every)))
+    return eqx.filter_jit(jax.grad(_loss_fn(scheme, checkpoints)))
 
 
 def _values(scheme, points):
@@ -110,10 +110,9 @@ def test_forward_mode_equals_reverse_mode_and_checkpointing_changes_nothing():
     _, tangent = _jvp(jv.eG(1))(theta, d)
     g = _grad(jv.eG(1))(theta)
     assert abs(float(tangent) - float(g @ d)) <= 1e-9 * abs(float(tangent))
-    g5 = _grad(jv.eG(1), checkpoint_every=5)(theta)
-    # Every frame starts with a fresh preconditioner (segments are whole frames): with the
-    # tangent carried from the previous segment instead, the two segmentations differed by
-    # up to 1.3e-9 (1.1e-10 of |g|), the Newton tolerance.
+    g5 = _grad(jv.eG(1), checkpoints=25)(theta)
+    # 25 checkpoints: the derivative re-solves segments of 7 sub-steps (a record of 160
+    # slots) by Newton (to rtol 1e-12) where the default stores every sub-step's unknowns.
     np.testing.assert_allclose(np.asarray(g5), np.asarray(g), rtol=1e-10)
 
 
@@ -167,18 +166,28 @@ def test_gradient_of_a_run_that_halves_its_steps():
     assert np.all(rel <= 1e-6), (g, fd, rel)
 
 
-def test_replay_refuses_a_record_it_cannot_hold():
-    """A run that halved into more sub-steps than its record holds, or a sub-step that
-    did not converge again in the replay, raises instead of returning a wrong derivative
-    (seen on a whole run under jax.jvp: eG(1), h = 0.5, max_iterations = 3, 21 rejected
-    attempts in 2 steps against a record of 18 sub-steps)."""
-    from jaxvisco._integrate._differentiable import Record, check_replay, record_size
+def test_derivative_refuses_what_it_cannot_differentiate():
+    """A run that halved into more sub-steps than its record holds, a sweep whose linear
+    solve did not converge, or a checkpointed sub-step that did not converge again when
+    re-solved, never give a wrong derivative: NaN by default, an error that says which with
+    RecursiveCheckpointAdjoint(throw=True) (seen on a whole run under jax.jvp: eG(1),
+    h = 0.5, max_iterations = 3, 21 rejected attempts in 2 steps against a record of 18
+    sub-steps)."""
+    from jaxvisco._integrate._differentiable import KRYLOV_RTOL, Record, check_sweep, record_size
 
     assert record_size(2) == 18 and record_size(400) == 500
     rec = Record(t=jnp.zeros(4), h=jnp.ones(4), n=jnp.asarray(3), frame_slot=jnp.array([-1, 2]))
-    check = jax.jit(check_replay)
-    np.testing.assert_array_equal(check(rec, jnp.asarray(False), jnp.ones(2)), np.ones(2))
-    with pytest.raises(Exception, match="more sub-steps than its derivative records"):
-        jax.block_until_ready(check(eqx.tree_at(lambda r: r.n, rec, jnp.asarray(5)), jnp.asarray(False), jnp.ones(2)))
-    with pytest.raises(Exception, match="did not converge when it was replayed"):
-        jax.block_until_ready(check(rec, jnp.asarray(True), jnp.ones(2)))
+    over = eqx.tree_at(lambda r: r.n, rec, jnp.asarray(5))
+    ok = (rec, KRYLOV_RTOL, jnp.asarray(False))
+    bad = [((over, 0.0, jnp.asarray(False)), "more sub-steps than its derivative records"),
+           ((rec, 1e-6, jnp.asarray(False)), "linear solve of the derivative did not converge"),
+           ((rec, 0.0, jnp.asarray(True)), "did not converge when it was re-solved")]
+    for throw in (True, False):
+        sweep = jax.jit(lambda r, w, f, throw=throw: check_sweep(r, jnp.ones(2), w, f, throw))
+        np.testing.assert_array_equal(sweep(*ok), np.ones(2))
+        for args, message in bad:
+            if throw:
+                with pytest.raises(Exception, match=message):
+                    jax.block_until_ready(sweep(*args))
+            else:
+                assert np.all(np.isnan(np.asarray(sweep(*args))))

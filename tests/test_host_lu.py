@@ -92,6 +92,17 @@ def test_second_process_served_from_cache(tmp_path):
     # JAX's default threshold of a second for caching; `enable_compilation_cache` lowers it):
     # the second process compiles nothing
     assert second["hits"] == second["requests"] > 1, second
+    # #63's reproduction: an entry overwritten with a pickle that would leave a marker
+    # when loaded. The next process does not run it: a miss, traced and stored again,
+    # the same numbers (JAX's compiled program of the loop is still found).
+    (entry,) = os.listdir(tmp_path / "cache" / "jaxvisco-export")
+    marker = tmp_path / "marker"
+    (tmp_path / "cache" / "jaxvisco-export" / entry).write_bytes(
+        b"cposix\nsystem\n(S'touch " + str(marker).encode() + b"'\ntR.")  # pickle protocol 0: os.system(...)
+    planted = _run(tmp_path, "ffi")
+    assert not marker.exists()
+    assert planted["export"] == {"exported": 1, "loaded": 0, "uncacheable": 0}, planted["export"]
+    assert planted["x"] == first["x"] and planted["H"] == first["H"]
     # the pure_callback path is what JAX refuses to cache (and jax.export to serialize)
     callback = _run(tmp_path, "callback")
     assert any("'jit__run' because it uses host callbacks" in m for m in callback["log"]), callback["log"]

@@ -13,7 +13,6 @@ residual the solver minimizes equal to the Newton residual. Measured on the 2D L
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 from jax.flatten_util import ravel_pytree
 
 from ._update import put
@@ -131,30 +130,25 @@ def _cycle(A, Minv, r0, tol, m, budget, recompute, residual=False):
 
 
 def mass_solve(matvec, diag, b, rtol, max_steps=500):
-    """$M^{-1} b$ for the SPD mass matrix `matvec` (diagonal `diag`), by lineax's
-    conjugate gradients on the symmetrically Jacobi-scaled system
-    $D M D w = D b / s$, $v = s D w$ with $D = diag(M)^{-1/2}$ and $s = \\max|D b|$: both
-    the residual and the iterates are then O(1), so lineax's component-wise test
-    (residual within ``rtol (1 + |b'|)``, increments within ``rtol (1 + |w|)``) means a
-    max-norm relative accuracy `rtol` (a few dozen iterations: the scaled consistent
-    mass is well conditioned).
+    r"""$M^{-1} b$ for the SPD mass matrix `matvec` (diagonal `diag`), by conjugate
+    gradients (`jax.scipy.sparse.linalg.cg`) on the symmetrically Jacobi-scaled system
+    $D M D w = D b / s$, $v = s D w$ with $D = diag(M)^{-1/2}$ and $s = \max|D b|$: both
+    the residual and the iterates are then O(1), and stopping at a residual 2-norm of
+    `rtol` means a max-norm relative accuracy `rtol` (a few dozen iterations: the scaled
+    consistent mass is well conditioned).
 
-    Why lineax and not a hand-written loop: `lineax.linear_solve` is differentiated
-    implicitly (one more solve, in both modes); a `while_loop` cannot be
-    reverse-differentiated, so `jax.grad` of anything holding a kinetic energy failed.
-    ``throw=False``: lineax's failure check is a host callback, which would keep the
-    time loop out of JAX's persistent cache; the scaled mass converges well within
-    `max_steps`. No periodic recomputation of the residual (lineax's `stabilise_every`):
-    the scaled mass is well conditioned, the residual stays within 1e-13 of `b` without it
-    (`test_mass_solve`, 2D and 3D), and each site in a compiled loop is smaller (the
-    time loop of the 2D L-shape: 27 204 against 27 470 optimized HLO lines).
+    Why JAX's CG: it is a `lax.custom_linear_solve`, differentiated implicitly (one more
+    solve) in both modes and transposed as the symmetric solve it is, and neither it nor
+    its derivatives hold a host callback, so every program that holds a kinetic energy
+    stays in JAX's persistent compilation cache, its derivatives included. (lineax's
+    `linear_solve`, used here before, checks the solves of its derivatives with a host
+    callback whatever `throw` says: a gradient's programs were never cached.) No periodic
+    recomputation of the residual: the scaled mass is well conditioned, the residual
+    stays within 1e-13 of `b` without it (`test_mass_solve`, 2D and 3D).
     """
     d = jax.lax.rsqrt(diag)
     Db = d * b
     s = jax.lax.stop_gradient(jnp.max(jnp.abs(Db)))
     s = jnp.where(s > 0, s, 1.0)
-    op = lx.FunctionLinearOperator(lambda w: d * matvec(d * w), jax.eval_shape(lambda: Db),
-                                   tags=lx.positive_semidefinite_tag)
-    cg = lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps, stabilise_every=None)
-    w = lx.linear_solve(op, Db / s, cg, throw=False).value
+    w, _ = jax.scipy.sparse.linalg.cg(lambda w: d * matvec(d * w), Db / s, tol=0.0, atol=rtol, maxiter=max_steps)
     return s * d * w

@@ -11,10 +11,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import register_wrapper
 from ._tensor import det3
 from ._update import pad_to_3d
 
 
+@register_wrapper  # cached programs' entries hold them as data (`_export`)
 class StaticArray:
     """A numpy array usable as an equinox static field (hashable by content).
 

@@ -18,8 +18,16 @@ import jax.numpy as jnp
 from .._config import jit
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
-from .._time_element._estimate import body_strain, dense_state, scaled_error, uses_end_velocities
-from .._time_element._step import end_state, make_context, predictor, step_outcome
+from .._time_element._estimate import body_strain, scaled_error, uses_end_velocities
+from .._time_element._step import (
+    end_state,
+    make_context,
+    predictor,
+    reaction_force,
+    static_reaction,
+    step_outcome,
+    unknowns_like,
+)
 from ._differentiable import (
     differentiate,
     empty_record,
@@ -27,22 +35,32 @@ from ._differentiable import (
     record_frame,
     record_substep,
 )
-from ._frames import at_equilibrium, frame_buffers, frame_fields, step_buffers, write_frame, write_step
+from ._frames import (
+    at_equilibrium,
+    diagnostics,
+    initial_frames,
+    frame_fields,
+    step_buffers,
+    write_dense_frames,
+    write_frame,
+    write_step,
+)
 from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
 
 
 @jit(export=True)
 def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save_every, save_gamma, ts_out,
-                 eq_tol, v0, use_v0, segment, multigrid=None):
+                 eq_tol, v0, use_v0, derivative, multigrid=None, save_reactions=False):
     """Integrate from `t0` to `t1` with error-controlled steps; at most `capacity`
     accepted steps. Frames: every `save_every`-th accepted step (and the last), or, if
-    `ts_out` is an array, at those times (dense output). Returns the `Solution` and the
-    next step size the controller proposes. `segment`: sub-steps per checkpointed
-    segment of its derivative (`_differentiable`); `multigrid`: the hierarchy's index arrays
+    `ts_out` is an array, at those times (dense output); `save_reactions`: with the
+    supports' forces. Returns the `Solution` and the
+    next step size the controller proposes. `derivative`: how a derivative's loop
+    records itself (`_differentiable.Plan`); `multigrid`: the hierarchy's index arrays
     (`multigrid_arguments`), arguments rather than constants of the program."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, ctrl=ctrl, t0=t0, t1=t1, h0=h0, capacity=capacity,
                  save_every=save_every, save_gamma=save_gamma, ts_out=ts_out, eq_tol=eq_tol, use_v0=use_v0,
-                 segment=segment, multigrid=multigrid)
+                 derivative=derivative, multigrid=multigrid, save_reactions=save_reactions)
 
 
 @eqx.filter_custom_jvp
@@ -50,24 +68,25 @@ def _loop(scene, state0, v0, **kw):
     """The adaptive loop; differentiable in the scene, the initial state and the
     predictor's initial velocity along its accepted steps (their sizes are constants of
     the derivative), through the replay of `_differentiable`."""
-    kw.pop("segment")
+    kw.pop("derivative")
     with multigrid_scope(kw["scheme"], scene, kw.pop("multigrid")):
         return _probe(scene, state0, v0, **kw)[:2]
 
 
 @_loop.def_jvp
-def _loop_jvp(primals, tangents, *, segment, multigrid, **kw):
+def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
     del multigrid  # the derivative reads the hierarchy as constants (`_simulate._loop_jvp`)
-    sol, h, rec = _probe(*primals, **kw)
+    sol, h, rec = _probe(*primals, plan=derivative, **kw)
     sol, t_sol = differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"],
-                               use_v0=kw["use_v0"], save_gamma=kw["save_gamma"], segment=segment)
+                               use_v0=kw["use_v0"], save_gamma=kw["save_gamma"],
+                               save_reactions=kw["save_reactions"], t0=kw["t0"], throw=derivative.throw)
     return (sol, h), (t_sol, jnp.zeros_like(h))
 
 
 def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, save_every, save_gamma, ts_out, eq_tol,
-           use_v0):
+           use_v0, save_reactions, plan=None):
     """The loop itself: the `Solution`, the next step size and the `Record` of its
-    accepted steps."""
+    accepted steps (with a `Plan`: what a derivative needs of them)."""
     order = scheme.k + 1
     v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
     rates = uses_end_velocities(scheme, scene, state0)
@@ -75,33 +94,10 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
     H0 = diag0["energy"]
     dense = ts_out is not None
     n_frames = ts_out.shape[0] if dense else 1 + -(-capacity // save_every)
-    frames = frame_buffers(n_frames, t0, state0, diag0, save_gamma)
-    if dense:
-        # Requested times at t0 are the initial state.
-        n_start = jnp.sum(ts_out <= t0)
-        frames = jax.lax.fori_loop(0, n_start, lambda j, f: write_frame(f, j, ts_out[j], state0, diag0,
-                                                                         jnp.asarray(0.0), jnp.asarray(0.0)), frames)
-    else:
-        n_start = jnp.asarray(1)
-        frames = write_frame(frames, 0, t0, state0, diag0, jnp.asarray(0.0), jnp.asarray(0.0))
+    frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
+                                     static_reaction(scene, state0, t0) if save_reactions else None, ts_out)
     end_eps = 1e-12 * jnp.maximum(jnp.abs(t1), jnp.abs(t0)) + 1e-300
     max_attempts = 16 * capacity
-
-    def dense_frames(frames, rec, ptr, ctx, U, t_next, D_before, D, W_before, W):
-        """Write the frames at the requested times up to `t_next` from the accepted step's
-        polynomial, noting for the derivative which step and where (`rec`: the step is
-        its last sub-step)."""
-        def cond(c):
-            return (c[2] < n_frames) & (ts_out[jnp.minimum(c[2], n_frames - 1)] <= t_next)
-
-        def body(c):
-            f, rec, j = c
-            s = jnp.clip((ts_out[j] - ctx.t0) / ctx.h, 0.0, 1.0)
-            st = dense_state(scheme, scene, ctx, U, s)
-            f = write_frame(f, j, ts_out[j], st, scene.diagnostics(st), D_before + s * D, W_before + s * W)
-            return f, record_dense_frame(rec, j, rec.n - 1, s), j + 1
-
-        return jax.lax.while_loop(cond, body, (frames, rec, ptr))
 
     def cond(c):
         return (c["status"] == RUNNING) & (c["attempts"] < max_attempts)
@@ -126,7 +122,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         accept = ok & ((err <= 1.0) | at_min)
         i = c["i"]
         dissipated, work = c["dissipated"] + D, c["work"] + W
-        rec = record_substep(c["rec"], t, h_try, accept)
+        rec = record_substep(c["rec"], t, h_try, accept, U=r.U, state=c["state"], v=c["v"], formed=r.formed)
 
         # Next step size.
         grow = ctrl.accepted_factor(order, err, c["err1"], c["err2"])
@@ -146,12 +142,15 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
 
         def on_accept(c):
             rec = c["rec"]
+            reaction = reaction_force(scheme, scene, ctx, r.U) if save_reactions else None
             if dense:
-                frames, rec, n_saved = dense_frames(c["frames"], rec, c["n_saved"], ctx, r.U, t_next,
-                                                    c["dissipated"], D, c["work"], W)
+                frames, rec, n_saved = write_dense_frames(
+                    scheme, scene, c["frames"], rec, c["n_saved"], ts_out, ctx, r.U, t_next, c["dissipated"], D,
+                    c["work"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), reaction)
             else:
                 frames = jax.lax.cond(
-                    save, lambda f: write_frame(f, c["n_saved"], t_next, new, scene.diagnostics(new), dissipated, work),
+                    save, lambda f: write_frame(f, c["n_saved"], t_next, new, diagnostics(scene, new), dissipated, work,
+                                                reaction),
                     lambda f: f, c["frames"])
                 n_saved = c["n_saved"] + save.astype(int)
             steps = write_step(c["steps"], i, step_t=t_next, step_h=h_try, newton_iterations=c["its"] + r.iterations,
@@ -184,7 +183,8 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                 v=jnp.where(use_v0, v0, v_state0), vm=v_state0, tan=empty_tangent(scheme, scene, solver), frames=frames,
                 steps=steps, n_saved=jnp.asarray(n_start), dissipated=jnp.asarray(0.0), work=jnp.asarray(0.0),
                 status=jnp.asarray(RUNNING), err1=one, err2=one, strain=strain0, its=zero, kits=zero, chord=zero,
-                rej=zero, attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense))
+                rej=zero, attempts=zero, rec=empty_record(capacity, n_frames, jnp.result_type(float), dense=dense, plan=plan,
+                                                 state0=state0, U_like=unknowns_like(scheme, scene, state0)))
     c = jax.lax.while_loop(cond, body, init)
     status = jnp.where(c["status"] == RUNNING, FAILED, c["status"])  # attempts exhausted
     return Solution(**frame_fields(c["frames"]), n_saved=c["n_saved"], n_steps=c["i"], status_code=status,

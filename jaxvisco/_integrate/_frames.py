@@ -1,11 +1,17 @@
 """What the compiled time loops share: the saved-frame buffers and the equilibrium test."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from .._fem._tensor import small_solve
 from .._fem._update import put
 from .._scene import Scene
+
+
+# The diagnostics of a frame as a program of its own: the loops write frames with it and
+# the derivative sweeps differentiate it, so JAX traces it once for all of them.
+diagnostics = eqx.filter_jit(Scene.diagnostics)
 
 
 def relative_kinetic_energy(scene: Scene, x, p):
@@ -43,23 +49,40 @@ def at_equilibrium(scene, state, D, eq_tol, H0, dissipated, work):
     return (relative_kinetic_energy(scene, state.x, state.p) <= eq_tol * scale) & (D <= eq_tol * scale)
 
 
-def frame_buffers(n_frames, t0, state0, diag0, save_gamma):
-    """Zeroed buffers of `n_frames` saved frames shaped like the initial ones."""
+def frame_buffers(n_frames, t0, state0, diag0, save_gamma, reactions=False):
+    """Zeroed buffers of `n_frames` saved frames shaped like the initial ones
+    (`reactions`: and the supports' forces, shaped like the positions)."""
     def buf(v):
         v = jnp.asarray(v)
         return jnp.zeros((n_frames,) + v.shape, v.dtype)
     out = dict(t=buf(t0), x=buf(state0.x), p=buf(state0.p),
                gamma=buf(state0.gamma) if (save_gamma and state0.gamma is not None) else None,
-               dissipated=buf(0.0), external_work=buf(0.0))
+               dissipated=buf(0.0), external_work=buf(0.0), reaction=buf(state0.x) if reactions else None)
     out.update({k: buf(v) for k, v in diag0.items()})
     return out
 
 
-def frame_values(state, diag, dissipated, work, with_gamma):
-    """What a saved frame holds besides its time (`gamma` only `with_gamma`)."""
+def initial_frames(n_frames, t0, state0, diag0, save_gamma, reaction0=None, ts_out=None):
+    """The frame buffers with the initial state written: as frame 0, or (dense output at
+    the times `ts_out`) as every frame at a time <= t0. `reaction0`: the supports' force
+    there, where the run saves reactions. Returns (frames, the number written)."""
+    frames = frame_buffers(n_frames, t0, state0, diag0, save_gamma, reactions=reaction0 is not None)
+    zero = jnp.zeros((), jnp.result_type(float))
+    if ts_out is None:
+        return write_frame(frames, 0, t0, state0, diag0, zero, zero, reaction0), jnp.asarray(1)
+    n_start = jnp.sum(ts_out <= t0)
+    return jax.lax.fori_loop(0, n_start, lambda j, f: write_frame(f, j, ts_out[j], state0, diag0, zero, zero,
+                                                                   reaction0), frames), n_start
+
+
+def frame_values(state, diag, dissipated, work, with_gamma, reaction=None):
+    """What a saved frame holds besides its time (`gamma` only `with_gamma`; `reaction`
+    where the run saves the supports' forces)."""
     out = dict(x=state.x, p=state.p, dissipated=dissipated, external_work=work, **diag)
     if with_gamma and state.gamma is not None:
         out["gamma"] = state.gamma
+    if reaction is not None:
+        out["reaction"] = reaction
     return out
 
 
@@ -76,9 +99,9 @@ def write_step(steps, i, **values):
     return {k: put(b, i, values[k]) for k, b in steps.items()}
 
 
-def write_frame(frames, idx, t, state, diag, dissipated, work):
-    """`frames` with frame `idx` set."""
-    vals = dict(t=t, **frame_values(state, diag, dissipated, work, frames["gamma"] is not None))
+def write_frame(frames, idx, t, state, diag, dissipated, work, reaction=None):
+    """`frames` with frame `idx` set (`reaction`: where the buffers hold the supports' forces)."""
+    vals = dict(t=t, **frame_values(state, diag, dissipated, work, frames["gamma"] is not None, reaction))
     return {k: (None if b is None else put(b, idx, vals[k])) for k, b in frames.items()}
 
 
@@ -88,4 +111,30 @@ def frame_fields(frames):
     return dict(t=f["t"], x=f["x"], p=f["p"], gamma=f["gamma"], energy=f["energy"], kinetic=f["kinetic"],
                 free_energy=f["free_energy"], dissipated=f["dissipated"], dissipation_rate=f["dissipation_rate"],
                 external_work=f["external_work"], linear_momentum=f["linear_momentum"],
-                angular_momentum=f["angular_momentum"])
+                angular_momentum=f["angular_momentum"], reaction=f["reaction"])
+
+
+def write_dense_frames(scheme, scene, frames, rec, ptr, ts_out, ctx, U, t_next, D_before, D, W_before, W, note,
+                       reaction=None):
+    """`frames` with the frames at the requested times `ts_out[ptr:]` up to `t_next` (the
+    end of an accepted step from `ctx` with unknowns `U`) written from the step's time
+    polynomial (dense output), each noted for the derivative by `note(rec, frame, s)` (s:
+    where in the step it lies). `D_before`, `W_before`: the cumulative dissipation and
+    work at the step's start; `D`, `W`: the step's own (linear in time within the step).
+    Returns (frames, rec, the next frame index)."""
+    from .._time_element._estimate import dense_state
+
+    n_frames = ts_out.shape[0]
+
+    def cond(c):
+        return (c[2] < n_frames) & (ts_out[jnp.minimum(c[2], n_frames - 1)] <= t_next)
+
+    def body(c):
+        f, rec, j = c
+        s = jnp.clip((ts_out[j] - ctx.t0) / ctx.h, 0.0, 1.0)
+        st = dense_state(scheme, scene, ctx, U, s)
+        f = write_frame(f, j, ts_out[j], st, diagnostics(scene, st), D_before + s * D, W_before + s * W, reaction)
+        return f, note(rec, j, s), j + 1
+
+    return jax.lax.while_loop(cond, body, (frames, rec, ptr))
+

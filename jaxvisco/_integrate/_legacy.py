@@ -19,7 +19,7 @@ _NEW = dict(t_end="t1=", dt="dt0= (a number), stepsize_controller=Schedule([...]
             save_every="saveat=SaveAt(every=n)", save_gamma="saveat=SaveAt(gamma=True)",
             stop_at_equilibrium="event=Equilibrium(tol)", max_halvings="ConstantStepSize(max_halvings=m) (or the "
             "Schedule/StepTo argument)", differentiable="nothing (every run is differentiable)",
-            checkpoint_every="adjoint=RecursiveCheckpointAdjoint(checkpoint_every=n)")
+            checkpoint_every="adjoint=RecursiveCheckpointAdjoint(checkpoints=n) (stored states; or max_bytes=)")
 
 
 def translate(old, t1, dt0, saveat, stepsize_controller, event, adjoint, where="simulate", accepted=tuple(_NEW)):
@@ -71,5 +71,7 @@ def translate(old, t1, dt0, saveat, stepsize_controller, event, adjoint, where="
             stepsize_controller = ConstantStepSize(max_halvings=m)
     if old.get("checkpoint_every") is not None:
         conflict("checkpoint_every", "adjoint", adjoint)
-        adjoint = RecursiveCheckpointAdjoint(checkpoint_every=old["checkpoint_every"])
+        with warnings.catch_warnings():  # one warning per call: the one above names it
+            warnings.simplefilter("ignore", DeprecationWarning)
+            adjoint = RecursiveCheckpointAdjoint(checkpoint_every=old["checkpoint_every"])
     return t1, dt0, saveat, stepsize_controller, event, adjoint

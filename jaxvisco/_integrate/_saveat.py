@@ -14,20 +14,25 @@ class SaveAt(eqx.Module):
 
     **Arguments:**
 
-    - `ts`: times within `[t0, t1]` (non-decreasing), with error-controlled steps
-      (`PIDController`) only. A frame inside a step is that step's own time polynomial
-      there (dense output; no step is shortened to hit it); `dissipated` and
-      `external_work` are exact at step ends and linear within a step.
+    - `ts`: times within `[t0, t1]` (non-decreasing; the sample times of data, say),
+      with fixed or error-controlled steps. A frame inside a step is that step's own
+      time polynomial there (dense output: positions, momenta and internal variable; no
+      step is shortened to hit it); `dissipated` and `external_work` are exact at step
+      ends and linear within a step. Differentiated, where in its step a frame lies is a
+      constant of the derivative, like the step sizes.
     - `every`: without `ts`, keep every `every`-th step (default 1). With fixed steps a
       step is a nominal step (its halvings are inside it); with a `PIDController`, an
       accepted step.
     - `gamma`: also keep the internal variable at the frames (default False: it is the
       largest field).
+    - `reactions`: also keep the force the supports exert on every held component
+      (`Solution.reaction`, `Solution.reaction_force`; default False); needs a scene with
+      held components.
 
     **Raises:**
 
-    `ValueError` for `every` below 1, `ts` together with `every`, or times that are not
-    finite and non-decreasing.
+    `ValueError` for `every` below 1, `ts` together with `every`, flags that are not
+    booleans, or times that are not finite and non-decreasing.
 
     **Example:**
 
@@ -35,24 +40,27 @@ class SaveAt(eqx.Module):
     import jaxvisco as jv
 
     every_tenth = jv.SaveAt(every=10, gamma=True)
-    at_times = jv.SaveAt(ts=[0.5, 1.0, 1.5])   # with a PIDController
+    at_times = jv.SaveAt(ts=[0.5, 1.0, 1.5], reactions=True)
     ```
     """
 
     ts: np.ndarray = None
     every: int = eqx.field(static=True, default=1)
     gamma: bool = eqx.field(static=True, default=False)
+    reactions: bool = eqx.field(static=True, default=False)
 
-    def __init__(self, ts=None, *, every=1, gamma=False):
+    def __init__(self, ts=None, *, every=1, gamma=False, reactions=False):
         if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
             raise ValueError(f"SaveAt: every must be an integer >= 1, got {every!r}.")
-        if not isinstance(gamma, (bool, np.bool_)):
-            raise ValueError(f"SaveAt: gamma must be True or False, got {gamma!r}.")
+        for name, flag in (("gamma", gamma), ("reactions", reactions)):
+            if not isinstance(flag, (bool, np.bool_)):
+                raise ValueError(f"SaveAt: {name} must be True or False, got {flag!r}.")
         if ts is not None and every != 1:
             raise ValueError(f"SaveAt: give ts or every, not both (got every = {every!r} with ts).")
         self.ts = None if ts is None else checked_times(ts, "SaveAt", 1, strict=False)
         self.every = int(every)
         self.gamma = bool(gamma)
+        self.reactions = bool(reactions)
 
     def check(self, t0, t1):
         if self.ts is not None and (self.ts[0] < t0 or self.ts[-1] > t1):
@@ -60,7 +68,7 @@ class SaveAt(eqx.Module):
                              f"[{self.ts[0]:g}, {self.ts[-1]:g}].")
 
     def __repr__(self):
-        gamma = ", gamma=True" if self.gamma else ""
+        gamma = (", gamma=True" if self.gamma else "") + (", reactions=True" if self.reactions else "")
         if self.ts is None:
             return f"SaveAt(every={self.every}{gamma})"
         return f"SaveAt({self.ts.size} times from {self.ts[0]:g} to {self.ts[-1]:g}{gamma})"

@@ -20,7 +20,14 @@ from .._config import _top_level, device_array, jit
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
 from .._solver._tangent import empty_tangent, multigrid_arguments, multigrid_scope
-from .._time_element._step import make_context, predictor, step_outcome
+from .._time_element._step import (
+    make_context,
+    predictor,
+    reaction_force,
+    static_reaction,
+    step_outcome,
+    unknowns_like,
+)
 from .._time_element._time_element import AbstractTimeElement
 from .._validation import check_finite
 from ._adaptive import run_adaptive
@@ -28,13 +35,23 @@ from ._adjoint import RecursiveCheckpointAdjoint
 from ._differentiable import (
     differentiate,
     empty_record,
+    plan,
+    record_dense_frame,
     record_frame,
     record_size,
     record_substep,
-    segment_length,
 )
 from ._event import AbstractEvent
-from ._frames import at_equilibrium, frame_buffers, frame_fields, step_buffers, write_frame, write_step
+from ._frames import (
+    at_equilibrium,
+    diagnostics,
+    frame_fields,
+    initial_frames,
+    step_buffers,
+    write_dense_frames,
+    write_frame,
+    write_step,
+)
 from ._legacy import translate
 from ._saveat import SaveAt
 from ._schedule import AbstractStepSizeController, ConstantStepSize
@@ -69,15 +86,17 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] 
       `t1` may be left out). Step end times are exact: a piece's steps end at
       `start + m * h`, never at an accumulated sum.
     - `saveat`: what to keep, `SaveAt(every=n, gamma=...)` (default: every step, no
-      internal variable) or `SaveAt(ts)` (frames at given times; needs a `PIDController`).
+      internal variable) or `SaveAt(ts)` (frames at given times, inside steps from their
+      time polynomial); `reactions=True` adds the supports' forces.
     - `stepsize_controller`: `ConstantStepSize(max_halvings=6)` (default),
       `Schedule([(t_until, dt), ...])`, `StepTo(ts)` or `PIDController(rtol, atol)`.
       Fixed steps are halved after a failed Newton solve (at most `max_halvings` times)
       and grow back after successes; a `PIDController` retries smaller steps down to its
       `dtmin`.
     - `event`: `Equilibrium(tol)` ends the run once the body is at rest.
-    - `adjoint`: how `jax.grad`/`jax.jvp` differentiate the run, a
-      `RecursiveCheckpointAdjoint` (the default).
+    - `adjoint`: how `jax.grad`/`jax.jvp` differentiate the run and what it stores,
+      `RecursiveCheckpointAdjoint(checkpoints=..., max_bytes=...)` (the default: a
+      discrete adjoint along the accepted steps, one linear solve per step).
     - `root_finder`: the Newton solver of each time element, `NewtonKrylov(...)`
       (default `NewtonKrylov()`).
     - `max_steps`: the capacity of the compiled loop. Fixed steps: by default the number
@@ -124,11 +143,14 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] 
     if not isinstance(integrator, AbstractTimeElement):
         raise TypeError(f"integrator must be cG(k), eG(k), Midpoint() or Newmark(), got {integrator!r}.")
     saveat = _option("saveat", saveat, SaveAt(), SaveAt, "SaveAt(every=n, gamma=...) or SaveAt(ts)")
+    if saveat.reactions and scene.fixed is None:
+        raise ValueError("SaveAt(reactions=True) needs a scene with held components (Scene(fixed=...)): the "
+                         "reactions are the forces the supports exert.")
     ctrl = _option("stepsize_controller", stepsize_controller, ConstantStepSize(), AbstractStepSizeController,
                    "ConstantStepSize(), Schedule([(t_until, dt), ...]), StepTo(ts) or PIDController(rtol, atol)")
     event = _option("event", event, None, AbstractEvent, "Equilibrium(tol) or None")
     adjoint = _option("adjoint", adjoint, RecursiveCheckpointAdjoint(), RecursiveCheckpointAdjoint,
-                      "RecursiveCheckpointAdjoint(checkpoint_every=...)")
+                      "RecursiveCheckpointAdjoint(checkpoints=..., max_bytes=...)")
     solver = _root_finder(root_finder, solver)
     _check_order(t0, t1)
     state0, v0, use_v0 = _initial(scene, initial_state, initial_velocity)
@@ -136,9 +158,6 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] 
     if isinstance(ctrl, PIDController):
         return _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solver, max_steps, throw,
                          state0, v0, use_v0)
-    if saveat.ts is not None:
-        raise ValueError("saveat=SaveAt(ts) (dense output) needs error-controlled steps "
-                         "(stepsize_controller=PIDController(...)); with fixed steps use SaveAt(every=n).")
     hs, ts = ctrl.step_times(t0, t1, dt0)
     t0, te = ts[0], ts[1:]
     n_active = len(hs)
@@ -148,10 +167,12 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] 
         hs, te = _padded(hs, te, int(max_steps))
     elif _top_level():  # traced callers keep arrays of the run's length
         hs, te = _padded(hs, te, capacity(n_active))
-    segment = _segment(record_size(len(hs)), saveat, adjoint)
+    saveat.check(float(t0), float(te[n_active - 1]))
+    derivative = plan(adjoint, record_size(len(hs)), saveat.every, integrator, scene)
     sol = _run(scene, integrator, solver, state0, device_array(float(t0)), device_array(hs), device_array(te),
-               device_array(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, segment,
-               multigrid_arguments(integrator, scene, solver))
+               device_array(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, derivative,
+               multigrid_arguments(integrator, scene, solver), save_reactions=saveat.reactions,
+               ts_out=None if saveat.ts is None else device_array(saveat.ts, float))
     return _finish(sol, integrator, ctrl.max_halvings, throw)
 
 
@@ -165,12 +186,6 @@ def _root_finder(root_finder, solver):
                       "diffrax calls the time stepper `solver`).", DeprecationWarning, stacklevel=3)
         return _option("solver", solver, NewtonKrylov(), NewtonKrylov, "NewtonKrylov(...)")
     return _option("root_finder", root_finder, NewtonKrylov(), NewtonKrylov, "NewtonKrylov(...)")
-
-
-def _segment(n_record, saveat, adjoint):
-    """Sub-steps per checkpointed segment of the derivative's replay, for a record of
-    `n_record` sub-steps."""
-    return segment_length(n_record, saveat.every, adjoint.checkpoint_every)
 
 
 def _option(name, value, default, cls, accepted):
@@ -237,7 +252,8 @@ def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solv
                           device_array(h0), cap, saveat.every, saveat.gamma,
                           None if saveat.ts is None else device_array(saveat.ts, float),
                           None if event is None else device_array(float(event.tol)), v0, use_v0,
-                          _segment(cap, saveat, adjoint), multigrid_arguments(integrator, scene, solver))
+                          plan(adjoint, cap, saveat.every, integrator, scene), multigrid_arguments(integrator, scene, solver),
+                          save_reactions=saveat.reactions)
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()
@@ -286,47 +302,54 @@ def _finish(sol, integrator, max_halvings, throw):
 
 @jit(export=True)
 def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0,
-         segment, multigrid=None):
-    """The time loop (`_loop`), compiled. `segment`: sub-steps per checkpointed segment
-    of its derivative (`_differentiable`); `multigrid`: the hierarchy's index arrays
-    (`multigrid_arguments`), arguments rather than constants of the program."""
+         derivative, multigrid=None, save_reactions=False, ts_out=None):
+    """The time loop (`_loop`), compiled. `derivative`: how a derivative's loop records
+    itself (`_differentiable.Plan`); `multigrid`: the hierarchy's index arrays
+    (`multigrid_arguments`), arguments rather than constants of the program;
+    `save_reactions`: frames with the supports' forces; `ts_out`: frames at these times
+    (dense output) instead of every `save_every`-th step."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, t0=t0, hs=hs, te=te, n_steps=n_steps,
                  save_every=save_every, save_gamma=save_gamma, eq_tol=eq_tol, max_halvings=max_halvings,
-                 use_v0=use_v0, segment=segment, multigrid=multigrid)
+                 use_v0=use_v0, derivative=derivative, multigrid=multigrid, save_reactions=save_reactions,
+                 ts_out=ts_out)
 
 
 @eqx.filter_custom_jvp
 def _loop(scene, state0, v0, **kw):
     """The loop's `Solution`; differentiable in the scene, the initial state and the
-    predictor's initial velocity through the replay of its sub-steps (`_loop_jvp`)."""
-    kw.pop("segment")
+    predictor's initial velocity along its accepted sub-steps (`_loop_jvp`)."""
+    kw.pop("derivative")
     with multigrid_scope(kw["scheme"], scene, kw.pop("multigrid")):
         return _probe(scene, state0, v0, **kw)[0]
 
 
 @_loop.def_jvp
-def _loop_jvp(primals, tangents, *, segment, multigrid, **kw):
-    # The derivative (the replay of `_differentiable`) reads the multigrid's index arrays
-    # as constants: JAX runs the rules of custom derivatives inside it lazily, possibly
-    # after this rule returned, where arguments passed in by a context would be stale.
+def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
+    # The derivative reads the multigrid's index arrays as constants: JAX runs the rules
+    # of custom derivatives inside it lazily, possibly after this rule returned, where
+    # arguments passed in by a context would be stale.
     del multigrid
-    sol, rec = _probe(*primals, **kw)
+    sol, rec = _probe(*primals, plan=derivative, **kw)
     return differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"], use_v0=kw["use_v0"],
-                         save_gamma=kw["save_gamma"], segment=segment)
+                         save_gamma=kw["save_gamma"], save_reactions=kw["save_reactions"], t0=kw["t0"], throw=derivative.throw)
 
 
 def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings,
-           use_v0):
-    """The loop itself: a `Solution` and the `Record` of its accepted sub-steps."""
-    n_frames = 1 + -(-hs.shape[0] // save_every)
+           use_v0, save_reactions, ts_out, plan=None):
+    """The loop itself: a `Solution` and the `Record` of its accepted sub-steps (with a
+    `Plan`: what a derivative needs of them)."""
+    dense = ts_out is not None
+    n_frames = ts_out.shape[0] if dense else 1 + -(-hs.shape[0] // save_every)
     v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
     diag0 = scene.diagnostics(state0, v_state0)
     H0 = diag0["energy"]
     full = 2**max_halvings
 
-    def advance(state, t, h, t_next, v, tan, rec):
+    def advance(state, t, h, t_next, v, tan, rec, frames, n_saved, dissipated, work):
         """One nominal step from t to t_next = t + h, halved on failure (dyadic sub-steps;
-        the sub-steps end at t + (pos / full) h, the last at t_next exactly)."""
+        the sub-steps end at t + (pos / full) h, the last at t_next exactly). Dense output:
+        the frames at requested times inside its sub-steps (`frames`, `n_saved`; the
+        cumulative `dissipated` and `work` at its start)."""
 
         def cond(c):
             return (c["pos"] < full) & ~c["failed"]
@@ -342,16 +365,27 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
             coarser = jnp.right_shift(full, jnp.maximum(c["level"] - 1, 0))
             level = jnp.where(ok, jnp.where((c["level"] > 0) & (pos % coarser == 0), c["level"] - 1, c["level"]),
                               c["level"] + 1)
+            t_new = jnp.where(pos == full, t_next, t + pos * (h / full))
+            rec = record_substep(c["rec"], c["t"], hs_, ok, U=r.U, state=c["state"], v=c["v"], formed=r.formed)
+            reaction = reaction_force(scheme, scene, ctx, r.U) if save_reactions else None
+            frames, n_saved = c["frames"], c["n_saved"]
+            if dense:
+                frames, rec, n_saved = jax.lax.cond(ok, lambda: write_dense_frames(
+                    scheme, scene, frames, rec, n_saved, ts_out, ctx, r.U, t_new, dissipated + c["D"], D,
+                    work + c["W"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), reaction),
+                    lambda: (frames, rec, n_saved))
             return dict(
-                state=pick(new, c["state"]), t=jnp.where(pos == full, t_next, t + pos * (h / full)),
+                state=pick(new, c["state"]), t=t_new, frames=frames, n_saved=n_saved,
+                reaction=c["reaction"] if reaction is None else pick(reaction, c["reaction"]),
                 v=pick(v_end, c["v"]), tan=r.tangent, level=level, pos=pos,
                 its=c["its"] + r.iterations, kits=c["kits"] + r.krylov_iterations, chord=c["chord"] + r.chord_iterations,
                 rej=c["rej"] + jnp.where(ok, 0, 1), D=c["D"] + jnp.where(ok, D, 0.0),
                 W=c["W"] + jnp.where(ok, W, 0.0), res=jnp.maximum(c["res"], jnp.where(ok, r.residual, 0.0)),
-                failed=level > max_halvings, rec=record_substep(c["rec"], c["t"], hs_, ok),
+                failed=level > max_halvings, rec=rec,
             )
 
-        init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0), rec=rec,
+        init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0), rec=rec, frames=frames,
+                    n_saved=n_saved, reaction=jnp.zeros_like(state.x) if save_reactions else None,
                     its=jnp.asarray(0), kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0), D=jnp.asarray(0.0),
                     W=jnp.asarray(0.0), res=jnp.asarray(0.0), failed=jnp.asarray(False))
         return jax.lax.while_loop(cond, body, init)
@@ -361,7 +395,8 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
 
     def body(c):
         i = c["i"]
-        a = advance(c["state"], c["t"], hs[i], te[i], c["v"], c["tan"], c["rec"])
+        a = advance(c["state"], c["t"], hs[i], te[i], c["v"], c["tan"], c["rec"], c["frames"], c["n_saved"],
+                    c["dissipated"], c["work"])
         failed = a["failed"]
         dissipated, work = c["dissipated"] + a["D"], c["work"] + a["W"]
         status = jnp.where(failed, FAILED, RUNNING)
@@ -369,28 +404,30 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
             at_rest = at_equilibrium(scene, a["state"], a["D"], eq_tol, H0, dissipated, work)
             status = jnp.where((status == RUNNING) & at_rest, EQUILIBRIUM, status)
         status = jnp.where((status == RUNNING) & (i == n_steps - 1), DONE, status)
-        save = ((i + 1) % save_every == 0) | (status != RUNNING)
-        save = save & ~failed
-
-        def do_save(frames):
-            return write_frame(frames, c["n_saved"], a["t"], a["state"], scene.diagnostics(a["state"]), dissipated, work)
-
-        frames = jax.lax.cond(save, do_save, lambda f: f, c["frames"])
+        if dense:  # written inside the sub-steps
+            save, frames, n_saved = jnp.asarray(False), a["frames"], a["n_saved"]
+        else:
+            save = (((i + 1) % save_every == 0) | (status != RUNNING)) & ~failed
+            frames = jax.lax.cond(save, lambda f: write_frame(f, c["n_saved"], a["t"], a["state"], diagnostics(
+                scene, a["state"]), dissipated, work, a["reaction"]), lambda f: f, a["frames"])
+            n_saved = c["n_saved"] + save.astype(int)
         steps = write_step(c["steps"], i, step_t=a["t"], step_h=hs[i], newton_iterations=a["its"],
                            krylov_iterations=a["kits"], chord_iterations=a["chord"], residual=a["res"],
                            rejections=a["rej"])
-        rec = record_frame(a["rec"], c["n_saved"], save)
+        rec = a["rec"] if dense else record_frame(a["rec"], c["n_saved"], save)
         return dict(i=i + 1, state=a["state"], t=a["t"], v=a["v"], tan=a["tan"], frames=frames, steps=steps, rec=rec,
-                    n_saved=c["n_saved"] + save.astype(int), dissipated=dissipated, work=work, status=status,
+                    n_saved=n_saved, dissipated=dissipated, work=work, status=status,
                     n_done=c["n_done"] + (~failed).astype(int))
 
-    frames = write_frame(frame_buffers(n_frames, t0, state0, diag0, save_gamma), 0, t0, state0, diag0,
-                         jnp.asarray(0.0), jnp.asarray(0.0))
+    frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
+                                     static_reaction(scene, state0, t0) if save_reactions else None, ts_out)
     steps = step_buffers(hs.shape[0])
     v_init = jnp.where(use_v0, v0, v_state0)
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene, solver),
-                frames=frames, steps=steps, rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype),
-                n_saved=jnp.asarray(1), dissipated=jnp.asarray(0.0),
+                frames=frames, steps=steps,
+                rec=empty_record(record_size(hs.shape[0]), n_frames, t0.dtype, dense=dense, plan=plan, state0=state0,
+                                 U_like=unknowns_like(scheme, scene, state0)),
+                n_saved=n_start, dissipated=jnp.asarray(0.0),
                 work=jnp.asarray(0.0), status=jnp.asarray(RUNNING), n_done=jnp.asarray(0))
     c = jax.lax.while_loop(cond, body, init)
     sol = Solution(

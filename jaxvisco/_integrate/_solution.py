@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._config import device_array, jit
+from .._export import register_type
 from .._scene import State
 
 RUNNING, FAILED, EQUILIBRIUM, DONE, MAX_STEPS = 0, 1, 2, 3, 4
@@ -33,6 +34,7 @@ class SolverError(RuntimeError):
         self.t, self.state, self.solution = t, state, solution
 
 
+@register_type  # a cached time loop returns one (`_export`: rebuilt from its fields, as data)
 class Solution(eqx.Module):
     """What `simulate` returns: the saved frames and per-step solver statistics of a run.
 
@@ -42,7 +44,11 @@ class Solution(eqx.Module):
       `gamma` (the internal variable, where `SaveAt(gamma=True)`), `energy` (the total
       energy H), `kinetic`, `free_energy`, `dissipated` (cumulative), `dissipation_rate`,
       `external_work` (cumulative work of the loads and moving supports),
-      `linear_momentum`, `angular_momentum`.
+      `linear_momentum`, `angular_momentum`, and with `SaveAt(reactions=True)`
+      `reaction`: the force the supports exert on each held component (zero on the free
+      ones), the mean over the step that ends at the frame (its work is the energy
+      balance's reaction work); at the initial frame the internal minus the external
+      force there.
     - Steps (one entry per step): `step_t` (end time), `step_h`, `newton_iterations`,
       `krylov_iterations`, `chord_iterations`, `residual`, `rejections`.
     - `status`: `"done"`, `"equilibrium"` (stopped by `Equilibrium`), `"failed"` (with
@@ -81,6 +87,35 @@ class Solution(eqx.Module):
     integrator: str = eqx.field(static=True, default="")
     end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
     strain_scale: jax.Array | None = None  # adaptive runs: the largest strain reached (restarts: PIDController)
+    reaction: jax.Array | None = None  # SaveAt(reactions=True): the supports' forces (frames, n_nodes, dim)
+
+    def reaction_force(self, nodes=None, component: int | None = None) -> jax.Array:
+        """The resultant force the supports exert, per frame.
+
+        **Arguments:**
+
+        - `nodes`: node indices or a boolean mask of the nodes to sum over (default: all
+          held ones).
+        - `component`: one component of the force (default: all).
+
+        **Returns:**
+
+        The nodal `reaction` summed over `nodes`, shape `(frames, dim)`, or `(frames,)`
+        with `component`.
+
+        **Raises:**
+
+        `ValueError` for a run without `SaveAt(reactions=True)`.
+        """
+        if self.reaction is None:
+            raise ValueError("this Solution holds no reaction forces: run simulate with "
+                             "saveat=SaveAt(reactions=True) on a scene with held components.")
+        if nodes is not None:
+            nodes = np.asarray(nodes)
+            nodes = np.flatnonzero(nodes) if nodes.dtype == bool else nodes
+        r = self.reaction if nodes is None else self.reaction[:, nodes]
+        total = jnp.sum(r, axis=1)
+        return total if component is None else total[:, component]
 
     @property
     def status(self) -> str:
@@ -92,7 +127,7 @@ class Solution(eqx.Module):
         outside `jax.jit`)."""
         ns, nt = int(self.n_saved), int(self.n_steps)
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
-                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum")
+                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction")
         out = self
         for name in frames:
             if getattr(self, name) is not None:

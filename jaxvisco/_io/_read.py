@@ -32,7 +32,7 @@ def _frames(f, path, last_only=False):
     c = committed(f)
     out = dict(points=np.asarray(f["mesh/points"]), cells=np.asarray(f["mesh/cells"]),
                cell_type=str(f["mesh/cells"].attrs.get("cell_type", "")))
-    keys = [("t", "time"), ("x", "nodal/x"), ("p", "nodal/p"), ("gamma", "qp/gamma")]
+    keys = [("t", "time"), ("x", "nodal/x"), ("p", "nodal/p"), ("gamma", "qp/gamma"), ("reaction", "nodal/reaction")]
     keys += [(k, "diagnostics/" + k) for k in FRAME_KEYS]
     for key, name in keys + ([] if last_only else [(k, "steps/" + k) for k in STEP_KEYS]):
         n = c.n_steps if name.startswith("steps/") else c.n_frames

@@ -24,6 +24,7 @@ class SceneFile:
       and ``commit_every`` (``[output]``).
     - `source`: the file's text; `path`; `base_dir`: where relative paths start.
     - `deprecated`: one note for each deprecated key the file uses (empty if none).
+    - `nodes(name)`: the node indices of a group (see below).
 
     The attributes `t_end`, `dt` and `solver` are deprecated names of `t1`, `dt0` and
     `root_finder`.
@@ -45,6 +46,17 @@ class SceneFile:
     rtol: object = None
     atol: object = None
     deprecated: tuple = ()
+    node_groups: object = None  # name -> node indices: the [groups] tables and the mesh file's node groups
+
+    def nodes(self, name: str):
+        """The node indices of the group `name`: a ``[groups.NAME]`` table or a node group
+        of the mesh file.
+
+        **Raises:**
+
+        `ValueError` naming the groups there are, for an unknown name.
+        """
+        return self.node_groups(name)
 
     @property
     def t_end(self):

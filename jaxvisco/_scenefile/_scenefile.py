@@ -167,6 +167,17 @@ class _Reader(_MaterialReader, _RunReader):
             return t.error(key, f"no {kind} group {gname!r}; the mesh has no named groups and {defined}.")
         return t.error(key, f"{' '.join(str(e).split()).rstrip('.')}; {defined}.")
 
+    def node_group(self, gname):
+        """The node indices of one group by name (`SceneFile.nodes`)."""
+        if gname in self.extra:
+            return np.asarray(self.extra[gname])
+        try:
+            return np.asarray(self.groups.node_group(gname))
+        except ValueError:
+            names = sorted(set(self.extra) | set(self.groups.names()["nodes"]))
+            raise ValueError(f"{self.name}: no node group {gname!r}; the scene file has: "
+                             f"{', '.join(names) if names else 'none'}.") from None
+
     def nodes(self, t, key="nodes"):
         """The node indices (sorted, unique) of the groups named by `t[key]`."""
         out = []
@@ -347,8 +358,8 @@ def read_quietly(path, source=None, base_dir=None) -> SceneFile:
         raise ValueError(f"{name}: not valid TOML: {e}") from None
     r = _Reader(name, doc, os.fspath(base_dir))
     options = r.run_options()
-    scene = r.scene()
-    return SceneFile(scene=scene, source=source, path=name, base_dir=r.base_dir, deprecated=tuple(r.notes), **options)
+    return SceneFile(scene=r.scene(), source=source, path=name, base_dir=r.base_dir, deprecated=tuple(r.notes),
+                     node_groups=r.node_group, **options)
 
 
 def scene_from_file(path):

@@ -157,6 +157,7 @@ class NewtonResult(eqx.Module):
     residual: jax.Array
     tangent: Tangent
     dissipation: jax.Array | None = None  # D_n at U, where the residual carries it
+    formed: jax.Array | None = None  # whether this solve formed its tangent (derivatives re-form theirs there)
 
 
 def _scale(ctx, scene, R0):
@@ -311,6 +312,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         # instead of two compiles faster (hex8 r8: 83 s with both copies, 58-59 s with this
         # one). The LU path (small meshes) keeps Newton's refresh.
         tangent = jax.lax.cond(stale | mismatch, lambda: form(U0), lambda: tangent)
+        formed_at_start = stale | mismatch
         stale = mismatch = jnp.asarray(False)
     if solver.chord and not direct:
         chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none)
@@ -331,7 +333,8 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     if form_at_start:  # a refresh Newton asked for (it does not form here): at the next step
         stale_after = stale_after | c["asked"]
     tan = eqx.tree_at(lambda t: t.stale, c["tan"], stale_after)
-    return NewtonResult(c["U"], converged, c["it"], c["kits"], chord_its, c["norm"], tan, c["D"])
+    formed = formed_at_start if form_at_start else c["asked"]  # Newton forms exactly where it asks to
+    return NewtonResult(c["U"], converged, c["it"], c["kits"], chord_its, c["norm"], tan, c["D"], formed)
 
 
 def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none):

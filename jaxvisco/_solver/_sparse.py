@@ -190,8 +190,7 @@ class HostLU:
             raise RuntimeError(
                 f"jaxvisco: factorization {token} is no longer cached (the last factor call kept the "
                 f"{self._retain} most recent ones, at most {self._max_bytes / 2**30:.1f} GiB). "
-                "Differentiating a long run? Lower RecursiveCheckpointAdjoint(checkpoint_every=...) so fewer "
-                "factorizations must stay alive at once.")
+                "Raise NewtonKrylov(retain=...) if a program needs more factorizations alive at once.")
         b = np.ascontiguousarray(b, dtype=np.float64)
         if lu is _PUBLISHED:
             x = np.empty_like(b)

@@ -24,6 +24,14 @@ class Unknowns(eqx.Module):
     g: Optional[jax.Array]  # (k, n_cells, nq, 6) or None
 
 
+def unknowns_like(scheme, scene, state):
+    """The shapes and dtypes of a step's `Unknowns` (`jax.ShapeDtypeStruct` leaves)."""
+    k, disc = scheme.k, scene.disc
+    x = jax.ShapeDtypeStruct((k,) + state.x.shape, state.x.dtype)
+    g = None if state.gamma is None else jax.ShapeDtypeStruct((k, disc.n_cells, disc.n_qp, 6), state.x.dtype)
+    return Unknowns(x, g)
+
+
 class StepContext(eqx.Module):
     """What is known when a step starts."""
 
@@ -181,6 +189,28 @@ def external_work(scheme, scene, ctx, U):
     ts = ctx.t0 + ctx.h * jnp.asarray(m["points"])
     fext = jax.vmap(scene.external_force)(ts)
     return work + jnp.sum(jnp.asarray(m["weights"])[:, None, None] * Xd * fext)
+
+
+def reaction_force(scheme, scene, ctx, U):
+    r"""The force the supports exert on the held components over the step (n, d; zero on
+    the free ones): the time element's own discrete reaction, its impulse over the step
+    divided by h, $\bar r = \sum_J R_J / h$ ($R$ the momentum equations without the
+    constraint; the test functions sum to one, so $\sum_J R_J = \int r\,dt$). Its work
+    over a step in which the held components move at a constant velocity v is $h\,\bar
+    r \cdot v$, `reaction_work`'s exactly. A mean over the step: for eG(1) the reaction is
+    constant within a step."""
+    R_x, _ = _unconstrained_residual(scheme, scene, ctx, U)
+    return jnp.where(jnp.asarray(scene.fixed.array), jnp.sum(R_x, axis=0) / ctx.h, 0.0)
+
+
+def static_reaction(scene, state, t):
+    """The force the supports exert on a body at rest in `state` at time `t` (n, d; zero
+    on the free components): internal minus external force at the held components (the
+    reaction of an initial frame, which no step precedes)."""
+    f = scene.internal_force(state.x, state.gamma)
+    if scene.loads is not None:
+        f = f - scene.external_force(t)
+    return jnp.where(jnp.asarray(scene.fixed.array), f, 0.0)
 
 
 def reaction_work(scheme, scene, ctx, U):

@@ -1,11 +1,13 @@
-"""Identification of the viscosities from observed trajectories (optax).
+"""Identification of material parameters from experiments: `identify`.
 
-The unknowns are the logarithms of the chosen material parameters (positive by
-construction, and steps in log space are relative changes). The loss is the relative
-least-squares misfit between `observe(solution)` and the data; its gradient comes from
-`simulate` (every run is differentiable): forward mode (`jax.jacfwd`, one tangent solve per
-step and parameter, no storage) since there are only a few parameters. Each optimizer
-step (optax L-BFGS with a backtracking line search by default) is one compiled program.
+The data are what a laboratory measures in one or several tests of the material
+(`Experiment`: load cells, markers, extensometers at the data's own sample times); the
+parameters any named ones (`PARAMETERS`), each positive or within bounds. The fit is
+Levenberg–Marquardt on the weighted residuals of all experiments (`least_squares`), its
+Jacobian by forward mode through the runs (one tangent solve per step and parameter,
+`_differentiable`); it reports each parameter's confidence interval, the correlations,
+and which parameters the data do not determine. L-BFGS (optax) on the same cost is
+kept as ``method="lbfgs"``.
 """
 
 import functools
@@ -29,6 +31,7 @@ from .._integrate._schedule import (
 from .._integrate._simulate import simulate
 from .._integrate._solution import FAILED
 from .._integrate._stepsize import PIDController
+from .._scene import Scene
 from .._solver._newton import NewtonKrylov
 
 PARAMETERS = {
@@ -36,6 +39,8 @@ PARAMETERS = {
     "eta_vol": lambda s: s.material.eta_vol,
     "lam": lambda s: s.material.equilibrium.lam,
     "mu": lambda s: s.material.equilibrium.mu,
+    "lam_neq": lambda s: s.material.nonequilibrium.lam,
+    "mu_neq": lambda s: s.material.nonequilibrium.mu,
     "density": lambda s: s.density,
 }
 
@@ -72,12 +77,13 @@ def with_parameters(scene, values: dict):
     return scene
 
 
-def identify(scene, integrator, observe: Callable, data, t1=None, dt0=None, initial: Optional[dict] = None, *,
+def _identify_trajectory(scene, integrator, observe: Callable, data, t1=None, dt0=None, initial: Optional[dict] = None, *,
              t0=None, stepsize_controller: Optional[AbstractStepSizeController] = None,
              saveat: Optional[SaveAt] = None, optimizer: Optional["optax.GradientTransformation"] = None,
              max_iterations=50, gtol=1e-7, ftol=1e-12, solver: NewtonKrylov = NewtonKrylov(rtol=1e-11),
              verbose=False, names: Optional[Sequence[str]] = None, **deprecated) -> Identification:
-    """Fit material parameters so that `observe(simulate(scene', ...))` matches `data`.
+    """jaxvisco 0.2's `identify` (one scene, any `observe`, L-BFGS), kept for its callers:
+    fit material parameters so that `observe(simulate(scene', ...))` matches `data`.
 
     **Arguments:**
     - `scene`, `integrator`, `t0`, `t1`, `dt0`, `stepsize_controller`, `saveat`, `solver`:
@@ -242,3 +248,298 @@ def _fwd_value_and_grad(f, z):
     basis = jnp.eye(z.shape[0], dtype=z.dtype)
     value, grads = jax.vmap(lambda d: jax.jvp(f, (z,), (d,)), out_axes=(None, 0))(basis)
     return value, grads
+
+
+class Parameter(eqx.Module):
+    """A parameter to fit: its `start` value and bounds (default positive: ``lower = 0``,
+    no upper bound; the fit then works in ``log x``)."""
+
+    start: float = eqx.field(static=True)
+    lower: float = eqx.field(static=True, default=0.0)
+    upper: float = eqx.field(static=True, default=np.inf)
+
+    def __init__(self, start, lower=0.0, upper=np.inf):
+        self.start, self.lower, self.upper = float(start), float(lower), float(upper)
+
+
+class _Problem(eqx.Module):
+    """The experiments of a fit (arrays) and the names of its parameters (static)."""
+
+    experiments: tuple
+    names: tuple = eqx.field(static=True)
+
+
+def _residuals(values, problem):
+    """The weighted residuals of every experiment, one vector (`least_squares`'s residual:
+    one function, so that every fit of the same layout reuses one compiled program)."""
+    out = []
+    for e in problem.experiments:
+        sol = e.run(with_parameters(e.scene, dict(zip(problem.names, values))))
+        out.append(((e.model(sol) - e.data) / e.scale()).ravel())
+    return jnp.concatenate(out)
+
+
+def _progress(step, cost, values):
+    print(f"identify: step {int(step):3d}  cost {float(cost):.6e}  "
+          + "  ".join(f"{float(v):.6g}" for v in np.asarray(values)), flush=True)
+
+
+class Fit:
+    """What `identify` found.
+
+    **Attributes:** `names`; `params` (name -> value); `intervals` (name -> (low, high),
+    at level `confidence`); `standard_errors` (name -> value); `correlation`,
+    `covariance` (p x p, in the order of `names`); `identifiable` (name -> bool: False
+    where the data do not determine it); `model` and `residuals` (experiment name ->
+    (m, c): what the fitted parameters predict, and prediction minus data); `cost`;
+    `converged`; `message`; `iterations`; `result` (the `LeastSquaresResult`);
+    `experiments`.
+    """
+
+    def __init__(self, result, experiments, model):
+        self.result, self.experiments = result, tuple(experiments)
+        self.names = tuple(result.names)
+        as_dict = lambda a: {n: float(v) for n, v in zip(self.names, np.asarray(a))}  # noqa: E731
+        self.params, self.standard_errors = as_dict(result.values), as_dict(result.standard_errors)
+        self.intervals = {n: (float(lo), float(hi)) for n, (lo, hi) in zip(self.names, np.asarray(result.intervals))}
+        self.identifiable = {n: bool(ok) for n, ok in zip(self.names, np.asarray(result.identifiable))}
+        self.correlation, self.covariance = np.asarray(result.correlation), np.asarray(result.covariance)
+        self.cost, self.confidence = float(result.cost), float(result.confidence)
+        self.converged, self.message, self.iterations = bool(result.converged), result.message, int(result.iterations)
+        self.model = {e.name: np.asarray(m) for e, m in zip(self.experiments, model)}
+        self.residuals = {e.name: self.model[e.name] - np.asarray(e.data) for e in self.experiments}
+
+    def summary(self) -> str:
+        """One line per parameter: value, standard error and interval; then the message."""
+        return self.result.summary()
+
+    def report(self) -> dict:
+        """The fit as JSON-ready data (values, intervals, correlations, residuals)."""
+        return dict(parameters={n: dict(value=self.params[n], standard_error=self.standard_errors[n],
+                                        interval=list(self.intervals[n]), identifiable=self.identifiable[n])
+                                for n in self.names},
+                    confidence=self.confidence, correlation=self.correlation.tolist(), cost=self.cost,
+                    converged=self.converged, message=self.message, iterations=self.iterations,
+                    experiments={e.name: dict(rms_residual=np.sqrt(np.mean((self.residuals[e.name]
+                                                                            / np.asarray(e.scale())) ** 2)).item(),
+                                              columns=list(e.labels)) for e in self.experiments})
+
+    def plot(self, path):
+        """The fit against the data, one panel per column of each experiment, with the
+        residuals below; written to `path` (PNG). **Returns:** the path."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        cols = [(e, j) for e in self.experiments for j in range(np.asarray(e.data).shape[1])]
+        fig, axes = plt.subplots(2, len(cols), figsize=(3.6 * len(cols), 5), squeeze=False,
+                                 gridspec_kw=dict(height_ratios=[3, 1]), sharex="col")
+        for k, (e, j) in enumerate(cols):
+            t = np.asarray(e.times)
+            top, bottom = axes[0, k], axes[1, k]
+            top.plot(t, np.asarray(e.data)[:, j], ".", ms=3, label="data")
+            top.plot(t, self.model[e.name][:, j], "-", lw=1.2, label="fit")
+            top.set_title(f"{e.name}: {e.labels[j]}", fontsize=9)
+            bottom.plot(t, self.residuals[e.name][:, j], ".", ms=2)
+            bottom.axhline(0.0, color="k", lw=0.5)
+            bottom.set_xlabel("t")
+            if k == 0:
+                top.legend(fontsize=8)
+                bottom.set_ylabel("fit - data")
+        fig.suptitle(", ".join(f"{n} = {self.params[n]:.4g} [{lo:.4g}, {hi:.4g}]"
+                               for n, (lo, hi) in self.intervals.items()), fontsize=9)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return path
+
+
+def identify(experiments, parameters=None, *args, method="lm", max_iterations=50, confidence=0.95,
+             xtol=1e-10, ftol=1e-14, gtol=1e-10, optimizer=None, verbose=False, **kwargs):
+    """Fit material parameters to experiments: what a lab measured in one or several
+    tests, fitted jointly.
+
+    **Arguments:**
+    - `experiments`: an `Experiment` or a list of them (each its scene, time element,
+      observables, data and noise level).
+    - `parameters`: name -> start value or `Parameter(start, lower, upper)`; names from
+      `PARAMETERS` (``eta_dev``, ``eta_vol``, ``lam``, ``mu`` of the equilibrium branch,
+      ``lam_neq``, ``mu_neq`` of the non-equilibrium branch, ``density``), set in every
+      experiment's scene. A plain number is positive (fitted in ``log x``).
+    - `method`: ``"lm"`` (default: Levenberg–Marquardt with a forward-mode Jacobian) or
+      ``"lbfgs"`` (optax L-BFGS on the same cost; its statistics from the Jacobian at the
+      point it reached, after one more Levenberg–Marquardt step).
+    - `max_iterations`: residual + Jacobian evaluations (LM) or L-BFGS iterations.
+    - `confidence`: the level of the intervals; `xtol`, `ftol`, `gtol`: as `least_squares`.
+    - `verbose`: print the cost and values after each accepted step.
+
+    Residuals are (model - data) / sigma per column. Where every experiment gives its
+    noise level (`Experiment.sigma`) the intervals use it as known; otherwise each column
+    without one is scaled by its root mean square and the noise level is estimated from
+    the residuals (Student t intervals).
+
+    jaxvisco 0.2's form ``identify(scene, integrator, observe, data, t1, dt0, initial)``
+    still works (deprecated).
+
+    **Returns:** a `Fit`.
+    """
+    if isinstance(experiments, Scene):
+        import warnings
+
+        warnings.warn("identify(scene, integrator, observe, data, ...) is deprecated: describe the test as "
+                      "jv.Experiment(scene, integrator, times, data, observe) and call identify(experiments, "
+                      "parameters).", DeprecationWarning, stacklevel=2)
+        return _identify_trajectory(experiments, parameters, *args, **kwargs)
+    if args or kwargs:
+        raise TypeError(f"identify(experiments, parameters, ...) takes keyword options only; got extra "
+                        f"{list(args) + sorted(kwargs)}.")
+    from ._experiment import Experiment
+    from ._least_squares import least_squares
+
+    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    if not exps or not all(isinstance(e, Experiment) for e in exps):
+        raise TypeError("identify: experiments must be an Experiment or a list of them.")
+    names = [e.name for e in exps]
+    if len(set(names)) != len(names):
+        raise ValueError(f"identify: experiments need distinct names, got {names}.")
+    if not parameters:
+        raise ValueError("identify: parameters must name at least one parameter, e.g. {'eta_dev': 1e4}.")
+    specs = {}
+    for n, v in parameters.items():
+        if n not in PARAMETERS:
+            raise ValueError(f"identify: unknown parameter {n!r}; accepted: {sorted(PARAMETERS)}.")
+        specs[n] = v if isinstance(v, Parameter) else Parameter(v)
+        if n in ("lam_neq", "mu_neq") and any(e.scene.material.nonequilibrium is None for e in exps):
+            raise ValueError(f"identify: {n} belongs to the non-equilibrium branch, which a scene here lacks "
+                             "(an elastic material).")
+    if method not in ("lm", "lbfgs"):
+        raise ValueError(f"identify: method must be 'lm' or 'lbfgs', got {method!r}.")
+    keys = tuple(specs)
+    start = np.array([specs[n].start for n in keys])
+    lower = np.array([specs[n].lower for n in keys])
+    upper = np.array([specs[n].upper for n in keys])
+    problem = _Problem(tuple(exps), keys)
+    known = all(e.sigma is not None for e in exps)
+    common = dict(lower=lower, upper=upper, names=keys, absolute_sigma=known, xtol=xtol, ftol=ftol, gtol=gtol,
+                  confidence=confidence, callback=_progress if verbose else None)
+    if method == "lbfgs":
+        start = _lbfgs(problem, start, lower, upper, keys, max_iterations, optimizer, verbose)
+        result = least_squares(_residuals, start, problem, max_steps=1, **common)
+    else:
+        result = least_squares(_residuals, start, problem, max_steps=int(max_iterations), **common)
+    # what the fit predicts, from its weighted residuals (no run, no program to compile)
+    r, model, k = np.asarray(result.residuals), [], 0
+    for e in exps:
+        d = np.asarray(e.data)
+        model.append(d + r[k:k + d.size].reshape(d.shape) * np.asarray(e.scale()))
+        k += d.size
+    return Fit(result, exps, model)
+
+
+def _lbfgs(problem, start, lower, upper, names, max_iterations, optimizer, verbose):
+    """Minimize the fit's cost with optax (L-BFGS by default) in the unconstrained
+    variables; returns the values it reached."""
+    import optax
+
+    from ._bounds import make_bounds
+
+    bounds = make_bounds(start, lower, upper, names)
+    opt = default_optimizer() if optimizer is None else optimizer
+    z = bounds.to_unconstrained(jnp.asarray(start))
+    state = jax.tree_util.tree_map(lambda a: jax.lax.convert_element_type(a, a.dtype) if eqx.is_array(a) else a,
+                                   opt.init(z))
+    prev = np.inf
+    for it in range(1, int(max_iterations) + 1):
+        z_new, state, value, grad = _lbfgs_step(problem, bounds, opt, z, state)
+        value = float(value)
+        if verbose:
+            _progress(it, value, bounds.to_physical(z))
+        if not np.isfinite(value) or abs(prev - value) <= 1e-14 * max(prev, 1e-300):
+            break
+        prev, z = value, z_new
+    return np.asarray(bounds.to_physical(z))
+
+
+@eqx.filter_jit
+def _lbfgs_step(problem, bounds, opt, z, state):
+    import optax
+
+    def cost(z):
+        r = _residuals(bounds.to_physical(z), problem)
+        return 0.5 * jnp.sum(r**2)
+
+    value, grad = _fwd_value_and_grad(cost, z)
+    updates, state = opt.update(grad, state, z, value=value, grad=grad, value_fn=cost)
+    return optax.apply_updates(z, updates), state, value, grad
+
+
+def identify_batch(experiments, parameters, data, *, devices=None, vectorize=False, max_iterations=50,
+                   confidence=0.95, xtol=1e-10, ftol=1e-14, gtol=1e-10):
+    """Many fits of the same experiments at once: one per member of a batch of data sets
+    (noise seeds, specimens), mapped over `devices` (default: every device of every
+    process, `sharded_map`) by Levenberg–Marquardt.
+
+    **Arguments:**
+    - `experiments`, `parameters`: as `identify` (the experiments' own data are replaced).
+    - `data`: one array per experiment, each `(B, m, c)`: member b's data; B a multiple of
+      the number of devices.
+    - `vectorize`: advance each device's members together (`jax.vmap`) instead of one
+      after the other (`jax.lax.map`).
+    - `max_iterations`, `confidence`, `xtol`, `ftol`, `gtol`: as `identify`.
+
+    **Many processes:** start each with `jax.distributed.initialize(coordinator_address,
+    num_processes, process_id)` (or let it read a cluster's environment) and call
+    `identify_batch` with the same arguments in every process; each process fits its
+    share of the batch on its devices, and every process returns the whole batch.
+
+    **Returns:** a `LeastSquaresResult` whose fields have a leading batch axis (`values`
+    (B, p), `intervals` (B, p, 2), `identifiable` (B, p), `status_code` (B,), ...).
+    """
+    from jax.experimental import multihost_utils
+
+    from ._batch import sharded_map
+    from ._experiment import Experiment
+    from ._least_squares import least_squares
+
+    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    data = [data] if isinstance(experiments, Experiment) and not isinstance(data, (list, tuple)) else list(data)
+    if len(data) != len(exps):
+        raise ValueError(f"identify_batch: give one data array per experiment ({len(exps)}), got {len(data)}.")
+    data = [np.asarray(d, dtype=float) for d in data]
+    for e, d in zip(exps, data):
+        want = np.asarray(e.data).shape
+        if d.ndim != 3 or d.shape[1:] != want or d.shape[0] != data[0].shape[0]:
+            raise ValueError(f"identify_batch: data of experiment {e.name!r} must be (B, {want[0]}, {want[1]}) "
+                             f"with one B for all, got {d.shape}.")
+    keys = tuple(parameters)
+    specs = {n: v if isinstance(v, Parameter) else Parameter(v) for n, v in parameters.items()}
+    for n in keys:
+        if n not in PARAMETERS:
+            raise ValueError(f"identify_batch: unknown parameter {n!r}; accepted: {sorted(PARAMETERS)}.")
+    start = np.array([specs[n].start for n in keys])
+    lower = np.array([specs[n].lower for n in keys])
+    upper = np.array([specs[n].upper for n in keys])
+    known = all(e.sigma is not None for e in exps)
+
+    def one(*ds):
+        problem = _Problem(tuple(eqx.tree_at(lambda e: e.data, e, d) for e, d in zip(exps, ds)), keys)
+        return least_squares(_residuals, start, problem, lower=lower, upper=upper, names=keys,
+                             absolute_sigma=known, xtol=xtol, ftol=ftol, gtol=gtol, confidence=confidence,
+                             max_steps=int(max_iterations))
+
+    devices = jax.devices() if devices is None else list(devices)
+    if jax.process_count() == 1:
+        return sharded_map(one, *data, devices=devices, vectorize=vectorize)
+    # Each process places its own rows of the batch on its devices and gets the whole
+    # result back.
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
+    spec = jax.sharding.PartitionSpec("batch")
+    B, n_local = data[0].shape[0], len(jax.local_devices())
+    per = B // len(devices)
+    mine = [i for i, d in enumerate(devices) if d.process_index == jax.process_index()]
+    rows = np.concatenate([np.arange(i * per, (i + 1) * per) for i in mine]) if mine else np.arange(0)
+    del n_local
+    arrays = [multihost_utils.host_local_array_to_global_array(d[rows], mesh, spec) for d in data]
+    out = sharded_map(one, *arrays, devices=devices, vectorize=vectorize)
+    return multihost_utils.process_allgather(out, tiled=True)

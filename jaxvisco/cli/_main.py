@@ -1,4 +1,4 @@
-"""Command line: ``jaxvisco paper | run | plot | scene-template``.
+"""Command line: ``jaxvisco paper | run | identify | plot | scene-template``.
 
 ``jaxvisco paper`` reproduces the L-shape comparison of Groß & Betsch (2005) (cG(1)
 against eG(1), a step-size change at t = 20 and large steps from the outset), ``jaxvisco
@@ -17,11 +17,13 @@ re-exported.
 
 import argparse
 import sys
+import warnings
 
 from ._checks import energy_warning as energy_warning
 from ._chunked import chunk_size as chunk_size
 from ._chunked import run_adaptive_chunked as run_adaptive_chunked
 from ._chunked import run_chunked as run_chunked
+from ._identify import _identify
 from ._options import _scene_file_options as _scene_file_options
 from ._paper import PAPER_T, QUICK_T, _paper
 from ._plot import _plot
@@ -37,7 +39,7 @@ def build_parser():
     p = argparse.ArgumentParser(prog="jaxvisco", description="Finite-strain viscoelastodynamics with "
                                 "energy-consistent Galerkin time elements (Gross & Betsch 2005).")
     p.add_argument("--version", action="version", version=f"jaxvisco {_version()}")
-    sub = p.add_subparsers(dest="command", metavar="{paper,run,plot,scene-template}")
+    sub = p.add_subparsers(dest="command", metavar="{paper,run,identify,plot,scene-template}")
     sub.required = True
 
     q = sub.add_parser("paper", help="cG(1) vs eG(1) on the paper's L-shape; energy.png + results files",
@@ -123,6 +125,17 @@ def build_parser():
                         "my.toml; jaxvisco run my.toml")
     st.set_defaults(func=_scene_template)
 
+    fi = sub.add_parser("identify", help="fit material parameters to experiments (scene files + CSV data)",
+                        description="Fit material parameters to one or several experiments, each a scene file with "
+                        "measured data in a CSV file (the supports' forces, marker displacements, extensometers); "
+                        "print each value with its confidence interval, write a JSON report and a plot of the fit. "
+                        "The fit file's format: see jaxvisco.cli._identify.")
+    fi.add_argument("fit", metavar="FIT.toml", help="the fit file")
+    fi.add_argument("--report", default=None, help="JSON report (default: beside the fit file)")
+    fi.add_argument("--plot", default=None, help="PNG of the fit against the data (default: beside the fit file)")
+    fi.add_argument("--quiet", action="store_true", help="no progress lines")
+    fi.set_defaults(func=_identify)
+
     pl = sub.add_parser("plot", help="plot energy, energy balance and momenta from a results file",
                         description="Plot H, H + dissipated, the energy balance error and the momenta of a results file.")
     pl.add_argument("results", help="a results .h5 file")
@@ -169,10 +182,14 @@ def main(argv=None):
     import jaxvisco as jv
 
     args = build_parser().parse_args(argv)
-    try:
+    with warnings.catch_warnings(record=True) as refused:  # one line each, not Python's warning format
+        warnings.simplefilter("always", jv.CacheWarning)
         jv.enable_compilation_cache()  # JAXVISCO_CACHE_DIR=DIR elsewhere, =off to disable
-    except OSError as e:
-        print(f"jaxvisco: warning: no compilation cache ({e}); every run compiles afresh", file=sys.stderr)
+    for w in refused:
+        if issubclass(w.category, jv.CacheWarning):
+            print(f"{w.message}".replace("jaxvisco: ", "jaxvisco: warning: ", 1), file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     try:
         return args.func(args)
     except (ValueError, TypeError, FileNotFoundError, OSError, jv.SolverError) as e:

@@ -1,0 +1,138 @@
+"""Identification accuracy and cost together (issue #60): the 3D specimen's relaxation and
+cyclic tests (grip force; in relaxation also a marker's lateral displacement), synthetic
+data from (eta_dev, eta_vol, mu_neq) = (2, 5, 2), fitted jointly by `jv.identify`.
+
+    python benchmarks/identification.py [--seeds 50] [--out identification.json]
+
+Measures, in one process:
+- exact data, starts off by a factor 3 (up, down, up): errors, evaluations, the wall time
+  of the first fit (compiling) and of a second one (compiled);
+- 1 % noise on every column (relative to its RMS), `--seeds` seeds fitted as one batch
+  (`jv.identify_batch`, one after the other on this machine's device): the errors, and
+  how often each 95 % interval holds the true value (its coverage), with a binomial 95 %
+  range for that fraction;
+- the same exact-data fit with a Jacobian by forward finite differences (one more run
+  per parameter, as FEBio's and MatCal's optimizers do): evaluations and time, the ratio
+  to beat.
+"""
+
+import argparse
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.stats  # noqa: E402
+
+import jaxvisco as jv  # noqa: E402
+from jaxvisco._tools import _identify  # noqa: E402
+
+TRUTH = {"eta_dev": 2.0, "eta_vol": 5.0, "mu_neq": 2.0}
+START = {"eta_dev": 6.0, "eta_vol": 5.0 / 3.0, "mu_neq": 6.0}
+
+
+def experiments(elements=(8, 2, 2)):
+    out = []
+    for test, kw in (("relaxation", dict(t1=3.0)), ("cyclic", dict(frequency=1.0, cycles=2.0))):
+        sp = jv.scenes.specimen(test, elements=elements, **kw)
+        times = np.linspace(0.0, sp.t1, int(round(sp.t1 / 0.1)) + 1)
+        observe = [jv.ReactionForce(sp.grip, "x")]
+        if test == "relaxation":
+            observe.append(jv.Displacement(sp.scene.mesh, [[20.0, 10.0, 5.0]], "y"))
+        c = sum(o.columns for o in observe)
+        proto = jv.Experiment(sp.scene, jv.eG(1), times, np.zeros((len(times), c)), observe, dt0=sp.dt0, name=test)
+        data = np.asarray(jax.jit(lambda s, e=proto: e.model(e.run(s)))(jv.with_parameters(sp.scene, TRUTH)))
+        out.append(jv.Experiment(sp.scene, jv.eG(1), times, data, observe, dt0=sp.dt0, name=test))
+    return out
+
+
+def errors(values, names):
+    return {n: float(v / TRUTH[n] - 1.0) for n, v in zip(names, np.asarray(values))}
+
+
+@jax.custom_jvp
+def _fd_residuals(values, problem):
+    return _identify._residuals(values, problem)
+
+
+@_fd_residuals.defjvp
+def _fd_jvp(primals, tangents):
+    """J v by a forward difference (one more run per direction), in relative steps."""
+    values, problem = primals
+    dv, _ = tangents
+    r = _identify._residuals(values, problem)
+    eps = 1e-6 * jnp.linalg.norm(values) / jnp.maximum(jnp.linalg.norm(dv), 1e-300)
+    return r, (_identify._residuals(values + eps * dv, problem) - r) / eps
+
+
+def fit(exps, residual):
+    keys = tuple(START)
+    start = np.array([START[k] for k in keys])
+    problem = _identify._Problem(tuple(exps), keys)
+    t = time.perf_counter()
+    res = jv.least_squares(residual, start, problem, lower=np.zeros(3), names=keys, max_steps=50)
+    jax.block_until_ready(res.values)
+    return res, time.perf_counter() - t
+
+
+def main(argv=None):
+    import os
+    import sys
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from common import machine, write_json
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=50)
+    ap.add_argument("--out", default="identification.json")
+    args = ap.parse_args(argv)
+    info = machine()
+    exps = experiments()
+    out = dict(machine=info, truth=TRUTH, start=START, m=int(sum(np.asarray(e.data).size for e in exps)))
+    # exact data, AD Jacobian (forward mode through the runs)
+    first, t_first = fit(exps, _identify._residuals)
+    second, t_second = fit(exps, _identify._residuals)
+    out["exact"] = dict(errors=errors(second.values, second.names), evaluations=int(second.iterations),
+                        message=second.message, first_fit_s=t_first, compiled_fit_s=t_second)
+    print(out["exact"], flush=True)
+    # the same with a finite-difference Jacobian
+    _, fd_first = fit(exps, _fd_residuals)
+    fd, fd_second = fit(exps, _fd_residuals)
+    out["finite_differences"] = dict(errors=errors(fd.values, fd.names), evaluations=int(fd.iterations),
+                                     first_fit_s=fd_first, compiled_fit_s=fd_second,
+                                     ratio_compiled=fd_second / t_second, ratio_first=fd_first / t_first)
+    print(out["finite_differences"], flush=True)
+    # 1 % noise, many seeds
+    rng = np.random.default_rng(0)
+    batch = []
+    for e in exps:
+        d = np.asarray(e.data)
+        batch.append(d[None] + 0.01 * np.sqrt(np.mean(d**2, axis=0)) * rng.standard_normal((args.seeds,) + d.shape))
+    t = time.perf_counter()
+    res = jv.identify_batch(exps, START, batch)
+    jax.block_until_ready(res.values)
+    t_batch = time.perf_counter() - t
+    names = res.names
+    values, intervals = np.asarray(res.values), np.asarray(res.intervals)
+    truth = np.array([TRUTH[n] for n in names])
+    covered = (intervals[..., 0] <= truth) & (truth <= intervals[..., 1])
+    lo, hi = scipy.stats.binom.ppf([0.025, 0.975], args.seeds, 0.95) / args.seeds
+    out["noise"] = dict(seeds=args.seeds, level=0.01, batch_s=t_batch, per_fit_s=t_batch / args.seeds,
+                        coverage={n: float(covered[:, i].mean()) for i, n in enumerate(names)},
+                        coverage_expected_range=[float(lo), float(hi)],
+                        error_mean={n: float(np.mean(values[:, i] / truth[i] - 1)) for i, n in enumerate(names)},
+                        error_std={n: float(np.std(values[:, i] / truth[i] - 1)) for i, n in enumerate(names)},
+                        mean_relative_standard_error={n: float(np.mean(np.asarray(res.relative_errors)[:, i]))
+                                                      for i, n in enumerate(names)},
+                        evaluations_max=int(np.max(np.asarray(res.iterations))),
+                        converged=int(np.sum(np.isin(np.asarray(res.status_code), [1, 2, 3, 4]))))
+    print(out["noise"], flush=True)
+    write_json(args.out, out)
+
+
+if __name__ == "__main__":
+    main()

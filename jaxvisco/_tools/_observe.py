@@ -1,0 +1,177 @@
+"""What an experiment measures, as functions of a run: load cells, markers, extensometers.
+
+Each observable maps a `Solution` (whose frames are the data's sample times) to an
+array (frames, columns); `Experiment` stacks the columns of its observables in order.
+They are equinox Modules of data (node indices, a `Probe`, a component), so a fit that
+holds them compiles once and a fit file (`jaxvisco identify`) can name them.
+"""
+
+import abc
+from typing import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .._fem._probe import Probe
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _component(component, where):
+    c = _AXES.get(component, component) if isinstance(component, str) else component
+    if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= int(c) <= 2:
+        raise ValueError(f"{where}: component must be 0, 1, 2 or 'x', 'y', 'z', got {component!r}.")
+    return int(c)
+
+
+class AbstractObservable(eqx.Module):
+    """A measured quantity as a function of a run."""
+
+    needs_reactions = False  # whether the run must save the supports' forces
+
+    @abc.abstractmethod
+    def __call__(self, solution) -> jnp.ndarray:
+        """The observed values (frames, columns)."""
+
+    @property
+    @abc.abstractmethod
+    def columns(self) -> int:
+        """How many columns of data it explains."""
+
+    @property
+    def labels(self):
+        return [f"{type(self).__name__}[{i}]" for i in range(self.columns)]
+
+
+class ReactionForce(AbstractObservable):
+    """A load cell: the resultant force the supports exert on the node group `nodes`
+    (indices) in direction `component` (0, 1, 2 or "x", "y", "z"), one column."""
+
+    nodes: tuple = eqx.field(static=True)
+    component: int = eqx.field(static=True)
+    name: str = eqx.field(static=True, default="force")
+    needs_reactions = True
+
+    def __init__(self, nodes, component, name="force"):
+        idx = np.asarray(nodes)
+        idx = np.flatnonzero(idx) if idx.dtype == bool else idx
+        if idx.ndim != 1 or idx.size == 0 or not np.issubdtype(idx.dtype, np.integer):
+            raise ValueError(f"ReactionForce: nodes must be a non-empty list of node indices, got {nodes!r}.")
+        self.nodes = tuple(int(i) for i in idx)
+        self.component = _component(component, "ReactionForce")
+        self.name = str(name)
+
+    def __call__(self, solution):
+        return solution.reaction_force(np.asarray(self.nodes), self.component)[:, None]
+
+    @property
+    def columns(self):
+        return 1
+
+    @property
+    def labels(self):
+        return [self.name]
+
+
+class Displacement(AbstractObservable):
+    """Markers or a DIC grid: the displacement of material points (reference
+    coordinates `points`, (k, dim), anywhere in the body) in direction `component`
+    (None: every component), k (or k * dim) columns, point by point."""
+
+    probe: Probe
+    component: object = eqx.field(static=True)
+    name: str = eqx.field(static=True, default="u")
+
+    def __init__(self, mesh, points, component=None, name="u"):
+        self.probe = Probe(mesh, points)
+        self.component = None if component is None else _component(component, "Displacement")
+        self.name = str(name)
+
+    def __call__(self, solution):
+        u = self.probe.displacements(solution.x)  # (frames, k, dim)
+        if self.component is not None:
+            return u[..., self.component]
+        return u.reshape(u.shape[0], -1)
+
+    @property
+    def columns(self):
+        k, d = self.probe.n_points, self.probe.dim
+        return k if self.component is not None else k * d
+
+    @property
+    def labels(self):
+        axes = "xyz"
+        if self.component is not None:
+            return [f"{self.name}{i}_{axes[self.component]}" for i in range(self.probe.n_points)]
+        return [f"{self.name}{i}_{axes[c]}" for i in range(self.probe.n_points) for c in range(self.probe.dim)]
+
+
+class Extensometer(AbstractObservable):
+    """An extensometer: the change of the distance between two material points (their
+    reference coordinates `a`, `b`), one column."""
+
+    probe: Probe
+    name: str = eqx.field(static=True, default="elongation")
+
+    def __init__(self, mesh, a, b, name="elongation"):
+        self.probe = Probe(mesh, np.stack([np.asarray(a, float), np.asarray(b, float)]))
+        self.name = str(name)
+
+    def __call__(self, solution):
+        x = self.probe.positions(solution.x)  # (frames, 2, dim)
+        X = self.probe.points
+        return (jnp.linalg.norm(x[:, 1] - x[:, 0], axis=-1) - jnp.linalg.norm(X[1] - X[0]))[:, None]
+
+    @property
+    def columns(self):
+        return 1
+
+    @property
+    def labels(self):
+        return [self.name]
+
+
+class Quantity(AbstractObservable):
+    """A field of the run's frames by name (``"free_energy"``, ``"dissipated"``,
+    ``"energy"``, ``"kinetic"``, ``"external_work"``, ...), one column; not what a lab
+    measures, but what a study of the scheme may fit."""
+
+    field: str = eqx.field(static=True)
+    _FIELDS = ("energy", "kinetic", "free_energy", "dissipated", "dissipation_rate", "external_work")
+
+    def __init__(self, field):
+        if field not in self._FIELDS:
+            raise ValueError(f"Quantity: field must be one of {self._FIELDS}, got {field!r}.")
+        self.field = field
+
+    def __call__(self, solution):
+        return getattr(solution, self.field)[:, None]
+
+    @property
+    def columns(self):
+        return 1
+
+    @property
+    def labels(self):
+        return [self.field]
+
+
+class Custom(AbstractObservable):
+    """Any function `fn(solution) -> (frames, n)` array of `n` columns (`n` given)."""
+
+    fn: Callable = eqx.field(static=True)
+    n: int = eqx.field(static=True)
+
+    def __init__(self, fn, n=1):
+        if not callable(fn):
+            raise TypeError(f"Custom: fn must be callable, got {fn!r}.")
+        self.fn, self.n = fn, int(n)
+
+    def __call__(self, solution):
+        out = jnp.asarray(self.fn(solution))
+        return out[:, None] if out.ndim == 1 else out
+
+    @property
+    def columns(self):
+        return self.n
