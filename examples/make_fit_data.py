@@ -47,9 +47,9 @@ def main(argv=None):
     for test in ("relaxation", "cyclic", "creep"):
         sf = read_scene_file(os.path.join(HERE, f"{test}.toml"))
         obs = observables(sf.scene, sf.nodes, test)
-        times = np.linspace(0.0, sf.t_end, int(round(sf.t_end / 0.05)) + 1)
+        times = np.linspace(0.0, sf.t1, int(round(sf.t1 / 0.05)) + 1)
         e = jv.Experiment(sf.scene, sf.integrator, times, np.zeros((len(times), len(obs))), list(obs.values()),
-                          dt0=sf.dt, name=test)
+                          dt0=sf.dt0, name=test)
         clean = np.asarray(jax.jit(lambda s: e.model(e.run(s)))(sf.scene))
         noisy = clean + args.noise * np.sqrt(np.mean(clean**2, axis=0)) * rng.standard_normal(clean.shape)
         path = os.path.join(args.out, f"{test}.csv")

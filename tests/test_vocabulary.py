@@ -328,3 +328,34 @@ def test_missing_extension_warns_once_with_the_fix(tmp_path):
     env["JAXVISCO_HOST_LU"] = "callback"
     p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert p.returncode == 0 and "RuntimeWarning" not in p.stderr, p.stderr
+
+
+def test_fit_files_take_the_scene_file_names(tmp_path):
+    """`jaxvisco identify`'s experiments are their scene files' runs in the Python names
+    (t0, t1, dt0, [solver]); a scene file with the old [time] names gives the same
+    experiment, with the deprecation note. Nothing is run."""
+    from jaxvisco.cli._identify import read_fit_file
+
+    scene = open(os.path.join(os.path.dirname(__file__), os.pardir, "examples", "fit", "relaxation.toml")).read()
+    assert "t1 = 3.0" in scene and "dt0 = 0.05" in scene
+    np.savetxt(tmp_path / "data.csv", np.column_stack([np.linspace(0.5, 3.0, 6), np.zeros(6)]), delimiter=",",
+               header="time,force", comments="")
+    fit = ('[parameters]\neta_dev = 6.0\n\n[[experiment]]\nscene = "{}"\ndata = "data.csv"\n\n'
+           '[[experiment.observe]]\ncolumn = "force"\nreaction = "grip"\ncomponent = "x"\n')
+    runs = {}
+    for name, text in [("new", scene.replace("t1 = 3.0", "t0 = 0.5\nt1 = 3.0")),
+                       ("old", scene.replace("t1 = 3.0", "t0 = 0.5\nt_end = 3.0").replace("dt0 = 0.05", "dt = 0.05")),
+                       ("solver", scene.replace("t1 = 3.0", "t0 = 0.5\nt1 = 3.0") + "\n[solver]\nrtol = 1e-12\n")]:
+        (tmp_path / f"{name}.toml").write_text(text)
+        (tmp_path / f"{name}-fit.toml").write_text(fit.format(f"{name}.toml"))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            (e,), params, _, _ = read_fit_file(tmp_path / f"{name}-fit.toml")
+        notes = [str(w.message) for w in caught if issubclass(w.category, FutureWarning)]
+        assert ("t_end is deprecated, write t1" in " ".join(notes)) == (name == "old"), notes
+        runs[name] = e
+    for e in runs.values():
+        assert (e.t0, e.t1, e.dt0) == (0.5, 3.0, 0.05)
+        assert e.stepsize_controller == runs["new"].stepsize_controller
+    assert runs["new"].root_finder.rtol == runs["old"].root_finder.rtol == 1e-11  # no [solver]: jv.Experiment's
+    assert runs["solver"].root_finder.rtol == 1e-12

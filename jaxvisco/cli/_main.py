@@ -129,7 +129,7 @@ def build_parser():
                         description="Fit material parameters to one or several experiments, each a scene file with "
                         "measured data in a CSV file (the supports' forces, marker displacements, extensometers); "
                         "print each value with its confidence interval, write a JSON report and a plot of the fit. "
-                        "The fit file's format: see jaxvisco.cli._identify.")
+                        "The fit file's format: the user guide's page \"Identification from experiments\".")
     fi.add_argument("fit", metavar="FIT.toml", help="the fit file")
     fi.add_argument("--report", default=None, help="JSON report (default: beside the fit file)")
     fi.add_argument("--plot", default=None, help="PNG of the fit against the data (default: beside the fit file)")
