@@ -54,32 +54,44 @@ def default_cache_dir():
     return os.path.join(base, "jaxvisco")
 
 
-def enable_compilation_cache(path=None, *, shared=None):
-    """Keep the time loops on disk, so that a new process neither traces nor compiles
-    them again: JAX's persistent compilation cache holds the compiled programs, and
-    ``jaxvisco-export/`` inside it the traced ones (`jax.export`, as data: a JSON header
-    and the serialized program, never a pickle).
+def enable_compilation_cache(path: "str | os.PathLike | None" = None, *, shared: "bool | None" = None) -> "str | None":
+    """Keep the compiled programs on disk, so that a new process neither traces nor
+    compiles the time loops again.
 
-    **Trust.** A cache entry is a program this process runs, so whoever can write to the
-    directory can run code as you. The directory is created private (mode 0700), and a
-    directory that another user owns, or that group or others can write to (or a parent
-    of it, unless sticky like ``/tmp``), is refused with a `CacheWarning` naming it and
-    the fix; the run then goes on without the cache.
+    JAX's persistent compilation cache holds the compiled programs, and
+    `jaxvisco-export/` inside it jaxvisco's traced ones (stored as data, never as
+    pickles). A cache entry is a program this process runs, so whoever can write to the
+    directory can run code as you: the directory is created private (mode 0700), and one
+    that another user owns, or that group or others can write to (or a parent of it,
+    unless sticky like `/tmp`), is refused with a `CacheWarning` that names it and the
+    fix; the run then goes on without the cache.
 
     **Arguments:**
-    - `path`: the cache directory (default `default_cache_dir()`, which honours
-      ``JAXVISCO_CACHE_DIR``; ``JAXVISCO_CACHE_DIR=off`` turns it off).
+
+    - `path`: the cache directory (default `$JAXVISCO_CACHE_DIR`, else
+      `$XDG_CACHE_HOME/jaxvisco`, else `~/.cache/jaxvisco`; `JAXVISCO_CACHE_DIR=off`
+      turns the cache off).
     - `shared`: True to use a directory that others can write to on purpose (a group
-      cache on a cluster): you then trust everyone who can write there. Default: the
-      environment variable ``JAXVISCO_CACHE_SHARED=1``, else False.
+      cache on a cluster): you then trust everyone who can write there. Default: True
+      where the environment sets `JAXVISCO_CACHE_SHARED=1`, else False.
 
-    Call it once, before the first `simulate`; it sets JAX's ``jax_compilation_cache_dir``
-    for the whole process, and JAX's ``jax_persistent_cache_min_compile_time_secs`` to 0:
-    every program is cached, also the many small ones around the time loops that each
-    compile in milliseconds. The ``jaxvisco`` command calls it for you.
+    Call it once, before the first `simulate`: it sets JAX's cache directory for the
+    whole process and caches every program, also the small ones around the time loops.
+    The `jaxvisco` command calls it for you.
 
-    **Returns:** the directory, or None (off, refused, or not creatable; never raises
-    for those).
+    **Returns:**
+
+    The directory, or None where the cache is off, refused or cannot be created (it
+    never raises for those).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    path = jv.enable_compilation_cache("jaxvisco-cache")
+    print(path)
+    ```
     """
     import warnings
 

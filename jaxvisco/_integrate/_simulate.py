@@ -94,17 +94,16 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] 
       and grow back after successes; a `PIDController` retries smaller steps down to its
       `dtmin`.
     - `event`: `Equilibrium(tol)` ends the run once the body is at rest.
-    - `adjoint`: how `jax.grad`/`jax.jvp` differentiate the run and what it stores,
-      `RecursiveCheckpointAdjoint(checkpoints=..., max_bytes=...)` (the default: a
-      discrete adjoint along the accepted steps, one linear solve per step).
+    - `adjoint`: how `jax.grad`/`jax.jvp` differentiate the run and what they store,
+      `RecursiveCheckpointAdjoint(checkpoints=..., max_bytes=...)` (the default).
     - `root_finder`: the Newton solver of each time element, `NewtonKrylov(...)`
       (default `NewtonKrylov()`).
     - `max_steps`: the capacity of the compiled loop. Fixed steps: by default the number
       of steps rounded up to the next of 8, 12, 16, 24, 32, 48, ..., so that runs of
       nearby lengths share one compiled program. `PIDController`: accepted steps
       (default 4096); a run that needs more ends with `status == "max_steps"`. A
-      derivative replays every slot of the capacity, so differentiate adaptive runs with
-      a `max_steps` near their need.
+      derivative covers every slot of the capacity: differentiate adaptive runs with a
+      `max_steps` near their need.
     - `throw`: raise `SolverError` when a step fails (default); with `False` return the
       `Solution` up to the failure with `status == "failed"`.
     - `initial_state`: start from this `State` instead of the scene's (restarts).

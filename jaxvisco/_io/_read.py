@@ -60,9 +60,9 @@ def read_results(path: str | os.PathLike) -> dict:
 
     **Returns:**
 
-    A dict with `points`, `cells`, `cell_type`, `t`, `x`, `p` (and `gamma` if stored),
-    every diagnostic and step array under its `Solution` name, and `attrs` (the root
-    attributes).
+    A dict with `points`, `cells`, `cell_type`, `t`, `x`, `p` (and `gamma` and
+    `reaction` if stored), every diagnostic and step array under its `Solution` name,
+    and `attrs` (the root attributes).
 
     **Raises:**
 
