@@ -17,10 +17,8 @@ import jaxvisco as jv
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
 DOCS = os.path.join(ROOT, "docs")
-# Docstrings in modules that other work is rewriting (issues #60 and the adjoint and
-# cache rework): they keep their private-module references and layout until then.
-NOT_YET = {"identify", "Identification", "with_parameters", "RecursiveCheckpointAdjoint", "AbstractAdjoint",
-           "enable_compilation_cache"}
+# Docstrings exempt from the reference checks (none since #59, #60 and #63 landed).
+NOT_YET = set()
 
 
 def api_entries():
@@ -44,7 +42,7 @@ def resolve(identifier):
 
 def public_names():
     names = [f"jaxvisco.{n}" for n in vars(jv) if not n.startswith("_") and not inspect.ismodule(getattr(jv, n))]
-    names += [f"jaxvisco.scenes.{n}" for n in ("lshape",)]
+    names += [f"jaxvisco.scenes.{n}" for n in ("lshape", "specimen", "Specimen")]
     names += [f"jaxvisco.time_functions.{n}" for n in vars(jv.time_functions) if not n.startswith("_") and
               n != "TIME_FUNCTIONS" and not inspect.ismodule(getattr(jv.time_functions, n))]
     return sorted(set(names) - {"jaxvisco.__version__"})
