@@ -163,7 +163,12 @@ def test_gradient_of_a_run_that_halves_its_steps():
     fd = (8 * (f[:, 0] - f[:, 1]) - (f[:, 2] - f[:, 3])) / (12 * eps)
     rel = np.abs(g - fd) / np.abs(fd)
     print(f"forward mode {g}, FD {fd}, rel. error {rel}")
-    assert np.all(rel <= 1e-6), (g, fd, rel)
+    # The differences carry the loss's rounding at Newton's tolerance (~1e-11 of it: the
+    # same loss differed by 1e-12 between two builds, and CI's stencil of the eta_vol
+    # component, 4e-4 of the largest, was 9e-10 off the derivative that both adjoints
+    # give): 1e-6 relative or that floor.
+    floor = 1e-11 * np.max(np.abs(f)) * 18 / (12 * eps)
+    assert np.all(np.abs(g - fd) <= 1e-6 * np.abs(fd) + floor), (g, fd, rel, floor)
 
 
 def test_derivative_refuses_what_it_cannot_differentiate():

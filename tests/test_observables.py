@@ -40,13 +40,22 @@ def test_reactions_balance_the_momentum_of_every_step(k):
     sol = jv.simulate(scene, jv.eG(k), t1=1.5, dt0=0.1, solver=SOLVER, saveat=jv.SaveAt(reactions=True))
     h = np.diff(np.asarray(sol.t))
     P = np.asarray(sol.linear_momentum)
-    R = np.asarray(sol.reaction_force())
+    R = np.asarray(sol.reaction_force(mean=True))
     F = f.sum(axis=0)
     balance = h[:, None] * R[1:] - (np.diff(P, axis=0) - h[:, None] * F)
     assert np.max(np.abs(balance)) <= 1e-9 * np.max(np.abs(h[:, None] * R[1:])), balance
     # the reactions sit on the held components only
     free = ~np.asarray(scene.fixed.array)
-    assert np.all(np.asarray(sol.reaction)[:, free] == 0.0)
+    assert np.all(np.asarray(sol.reaction)[:, free] == 0.0) and np.all(np.asarray(sol.reaction_mean)[:, free] == 0.0)
+    # within a step too: the force at a frame's time is the rate of the momentum
+    # polynomial minus the loads (degree k-1 in time; the central difference of the
+    # momentum, a polynomial of degree k <= 2, is exact), its mean is the step's
+    t, d = 0.43, 1e-3
+    s = jv.simulate(scene, jv.eG(k), t1=0.6, dt0=0.1, solver=SOLVER, saveat=jv.SaveAt([t - d, t, t + d], reactions=True))
+    P, R = np.asarray(s.linear_momentum), np.asarray(s.reaction_force())
+    np.testing.assert_allclose(R[1], (P[2] - P[0]) / (2 * d) - F, rtol=0, atol=1e-9 * np.max(np.abs(R[1])))
+    np.testing.assert_allclose(np.asarray(s.reaction_force(mean=True))[1], np.asarray(sol.reaction_force(mean=True))[5],
+                               rtol=1e-9)
 
 
 @pytest.mark.parametrize("k", [1, 2])
@@ -59,7 +68,7 @@ def test_the_work_of_the_reactions_is_the_energy_balance_term(k):
     t = np.asarray(sol.t)
     h = np.diff(t)
     moving = t[1:] <= 0.6 + 1e-12  # steps that end within the ramp move at speed v
-    r = np.asarray(sol.reaction)[1:]
+    r = np.asarray(sol.reaction_mean)[1:]
     work = np.sum(h[:, None, None] * r * np.where(moving[:, None, None], v[None], 0.0))
     W = float(sol.external_work[-1])
     assert abs(W) > 1e-3
@@ -138,3 +147,4 @@ def test_reactions_in_results_files(tmp_path):
     jv.save(sol, scene, tmp_path / "run.h5")
     back = jv.read_results(tmp_path / "run.h5")
     np.testing.assert_array_equal(back["reaction"], np.asarray(sol.reaction))
+    np.testing.assert_array_equal(back["reaction_mean"], np.asarray(sol.reaction_mean))

@@ -23,8 +23,6 @@ from .._time_element._step import (
     end_state,
     make_context,
     predictor,
-    reaction_force,
-    static_reaction,
     step_outcome,
     unknowns_like,
 )
@@ -38,7 +36,9 @@ from ._differentiable import (
 from ._frames import (
     at_equilibrium,
     diagnostics,
+    first_reactions,
     initial_frames,
+    step_reactions,
     frame_fields,
     step_buffers,
     write_dense_frames,
@@ -95,7 +95,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
     dense = ts_out is not None
     n_frames = ts_out.shape[0] if dense else 1 + -(-capacity // save_every)
     frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
-                                     static_reaction(scene, state0, t0) if save_reactions else None, ts_out)
+                                     first_reactions(scene, state0, t0) if save_reactions else None, ts_out)
     end_eps = 1e-12 * jnp.maximum(jnp.abs(t1), jnp.abs(t0)) + 1e-300
     max_attempts = 16 * capacity
 
@@ -142,11 +142,11 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
 
         def on_accept(c):
             rec = c["rec"]
-            reaction = reaction_force(scheme, scene, ctx, r.U) if save_reactions else None
+            reaction = step_reactions(scheme, scene, ctx, r.U) if save_reactions else None
             if dense:
                 frames, rec, n_saved = write_dense_frames(
                     scheme, scene, c["frames"], rec, c["n_saved"], ts_out, ctx, r.U, t_next, c["dissipated"], D,
-                    c["work"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), reaction)
+                    c["work"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), save_reactions)
             else:
                 frames = jax.lax.cond(
                     save, lambda f: write_frame(f, c["n_saved"], t_next, new, diagnostics(scene, new), dissipated, work,

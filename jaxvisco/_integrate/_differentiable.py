@@ -46,7 +46,7 @@ from .._fem._tensor import vec_to_sym
 from .._fem._update import put, put_or_drop
 from .._scene import State
 from .._solver._newton import _residual as newton_residual
-from .._solver._newton import _scale, solve_step
+from .._solver._newton import force_impulse, solve_step
 from .._solver._tangent import body_rotation, empty_tangent, form_tangent, schur_solve
 from .._time_element._estimate import polynomial_state, step_polynomial
 from .._time_element._step import (
@@ -56,12 +56,10 @@ from .._time_element._step import (
     make_context,
     next_velocity,
     predictor,
-    reaction_force,
-    static_reaction,
     step_dissipation,
     step_outcome,
 )
-from ._frames import diagnostics, frame_values
+from ._frames import diagnostics, first_reactions, frame_values, step_reactions
 
 # Relative residual of the sweeps' linear solves (2-norm of the scaled system) and their
 # Krylov vectors at most (restarted every `KRYLOV_RESTART`).
@@ -231,7 +229,7 @@ def _outputs(scheme, scene, state, t, h, U):
 def _first_frame(sw, scene, state):
     """The frame of the initial state (every frame before the first sub-step)."""
     zero = jnp.zeros((), state.p.dtype)
-    reaction = static_reaction(scene, state, sw.t0) if sw.save_reactions else None
+    reaction = first_reactions(scene, state, sw.t0) if sw.save_reactions else None
     return frame_values(state, diagnostics(scene, state), zero, zero, sw.save_gamma, reaction)
 
 
@@ -245,7 +243,7 @@ def _frame(sw, scene, state, t, h, U, D, W, D0, W0, s):
         st, s = end_state(sw.scheme, scene, ctx, U), 1.0
     else:
         st = polynomial_state(sw.scheme, step_polynomial(sw.scheme, scene, ctx, U), s)
-    reaction = reaction_force(sw.scheme, scene, ctx, U) if sw.save_reactions else None
+    reaction = step_reactions(sw.scheme, scene, ctx, U, s) if sw.save_reactions else None
     return frame_values(st, diagnostics(scene, st), D0 + s * D, W0 + s * W, sw.save_gamma, reaction)
 
 
@@ -380,6 +378,15 @@ def _form(sw, ctx, U):
                         lin.block_solver(scene), np.float64)
 
 
+def _momentum_scale(scene, ctx):
+    """The scale of a sub-step's momentum rows in the sweeps' linear solves: Newton's
+    (`_newton._scale`) without the predictor's residual, which the record does not hold
+    (the start momenta, the force impulse, the floor tied to the positions)."""
+    mx = jnp.max(jnp.abs(scene.disc.mass_matvec(ctx.state.x, scene.density))) / ctx.h
+    return jax.lax.stop_gradient(jnp.maximum(jnp.maximum(jnp.max(jnp.abs(ctx.state.p)), force_impulse(ctx, scene)),
+                                             jnp.maximum(1e-8 * mx, 1e-300)))
+
+
 def _no_tangent(sw):
     """A stale tangent shaped as `_form`'s (float64 multigrid operators)."""
     f64 = lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a  # noqa: E731
@@ -452,7 +459,7 @@ def _sweep(sw, a):
         (R, _), lin_U = jax.linearize(lambda u: _residual(scheme, scene, state, t, h, u), U)
         rhs, rhs_D = jax.jvp(lambda th, s: _residual(scheme, split.build(th), s, t, h, U), (theta, state),
                              (d_theta, c["ds"]))[1]
-        sx = jnp.maximum(_scale(ctx, scene, R), 1e-300)
+        sx = _momentum_scale(scene, ctx)
         tan = jax.lax.cond(starts[j], lambda: _form(sw, ctx, U), lambda: c["tan"])
         rotation = body_rotation(scene, state.x)
         # (S A) dU = -S rhs, S = 1/sx on the momentum rows; right preconditioner P^{-1} S^{-1}
@@ -544,7 +551,7 @@ def _adjoint_sweep(sw, ct):
         d_th, d_s, d_u = r_vjp((_zeros(R), cot_D))
         o_th, o_s = _add(o_th, d_th), _add(o_s, d_s)
         gU = _add(_add(o_u, d_u), acc[2])
-        sx = jnp.maximum(_scale(ctx, scene, R), 1e-300)
+        sx = _momentum_scale(scene, ctx)
         rotation = body_rotation(scene, state.x)
         solve_t = jax.linear_transpose(lambda b: schur_solve(scheme, scene, ctx, tan, b, rotation), U)
         # (S A)^T nu = gU with matvec v -> A^T (S v); right preconditioner S^{-1} P^{-T}; mu = S nu
@@ -592,7 +599,7 @@ def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_g
     if not jax.tree_util.tree_leaves(a):
         return sol, t_sol
     names = [k for k in ("x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated", "dissipation_rate",
-                         "external_work", "linear_momentum", "angular_momentum", "reaction")
+                         "external_work", "linear_momentum", "angular_momentum", "reaction", "reaction_mean")
              if getattr(sol, k) is not None]
     sw = _Sweep(rec, split, state0, v0, use_v0, sol.n_saved, scheme, solver, save_gamma, save_reactions, t0, throw)
 

@@ -57,7 +57,8 @@ def frame_buffers(n_frames, t0, state0, diag0, save_gamma, reactions=False):
         return jnp.zeros((n_frames,) + v.shape, v.dtype)
     out = dict(t=buf(t0), x=buf(state0.x), p=buf(state0.p),
                gamma=buf(state0.gamma) if (save_gamma and state0.gamma is not None) else None,
-               dissipated=buf(0.0), external_work=buf(0.0), reaction=buf(state0.x) if reactions else None)
+               dissipated=buf(0.0), external_work=buf(0.0), reaction=buf(state0.x) if reactions else None,
+               reaction_mean=buf(state0.x) if reactions else None)
     out.update({k: buf(v) for k, v in diag0.items()})
     return out
 
@@ -76,14 +77,34 @@ def initial_frames(n_frames, t0, state0, diag0, save_gamma, reaction0=None, ts_o
 
 
 def frame_values(state, diag, dissipated, work, with_gamma, reaction=None):
-    """What a saved frame holds besides its time (`gamma` only `with_gamma`; `reaction`
-    where the run saves the supports' forces)."""
+    """What a saved frame holds besides its time (`gamma` only `with_gamma`; `reaction`:
+    the supports' forces, `step_reactions`, where the run saves them)."""
     out = dict(x=state.x, p=state.p, dissipated=dissipated, external_work=work, **diag)
     if with_gamma and state.gamma is not None:
         out["gamma"] = state.gamma
     if reaction is not None:
-        out["reaction"] = reaction
+        out.update(reaction)
     return out
+
+
+def step_reactions(scheme, scene, ctx, U, sigma=1.0):
+    """The supports' forces a frame at the fraction `sigma` of a step holds: ``reaction``,
+    the force at that time (the time element's multiplier, a polynomial of degree k-1
+    in time: `_step.reaction_coefficients`), and ``reaction_mean``, its mean over the
+    step (whose work is the energy balance's)."""
+    from .._time_element._step import mean_reaction, reaction_at, reaction_coefficients
+
+    c = reaction_coefficients(scheme, scene, ctx, U)
+    return dict(reaction=reaction_at(scheme, c, jnp.asarray(sigma, ctx.h.dtype)),
+                reaction_mean=mean_reaction(c, scheme))
+
+
+def first_reactions(scene, state, t):
+    """`step_reactions` of an initial frame (no step before it: a body at rest)."""
+    from .._time_element._step import static_reaction
+
+    r = static_reaction(scene, state, t)
+    return dict(reaction=r, reaction_mean=r)
 
 
 def step_buffers(capacity):
@@ -111,15 +132,15 @@ def frame_fields(frames):
     return dict(t=f["t"], x=f["x"], p=f["p"], gamma=f["gamma"], energy=f["energy"], kinetic=f["kinetic"],
                 free_energy=f["free_energy"], dissipated=f["dissipated"], dissipation_rate=f["dissipation_rate"],
                 external_work=f["external_work"], linear_momentum=f["linear_momentum"],
-                angular_momentum=f["angular_momentum"], reaction=f["reaction"])
+                angular_momentum=f["angular_momentum"], reaction=f["reaction"], reaction_mean=f["reaction_mean"])
 
 
 def write_dense_frames(scheme, scene, frames, rec, ptr, ts_out, ctx, U, t_next, D_before, D, W_before, W, note,
-                       reaction=None):
+                       reactions=False):
     """`frames` with the frames at the requested times `ts_out[ptr:]` up to `t_next` (the
     end of an accepted step from `ctx` with unknowns `U`) written from the step's time
     polynomial (dense output), each noted for the derivative by `note(rec, frame, s)` (s:
-    where in the step it lies). `D_before`, `W_before`: the cumulative dissipation and
+    where in the step it lies), with the supports' forces there if `reactions`. `D_before`, `W_before`: the cumulative dissipation and
     work at the step's start; `D`, `W`: the step's own (linear in time within the step).
     Returns (frames, rec, the next frame index)."""
     from .._time_element._estimate import dense_state
@@ -133,7 +154,8 @@ def write_dense_frames(scheme, scene, frames, rec, ptr, ts_out, ctx, U, t_next, 
         f, rec, j = c
         s = jnp.clip((ts_out[j] - ctx.t0) / ctx.h, 0.0, 1.0)
         st = dense_state(scheme, scene, ctx, U, s)
-        f = write_frame(f, j, ts_out[j], st, diagnostics(scene, st), D_before + s * D, W_before + s * W, reaction)
+        f = write_frame(f, j, ts_out[j], st, diagnostics(scene, st), D_before + s * D, W_before + s * W,
+                        step_reactions(scheme, scene, ctx, U, s) if reactions else None)
         return f, note(rec, j, s), j + 1
 
     return jax.lax.while_loop(cond, body, (frames, rec, ptr))

@@ -23,8 +23,6 @@ from .._solver._tangent import empty_tangent, multigrid_arguments, multigrid_sco
 from .._time_element._step import (
     make_context,
     predictor,
-    reaction_force,
-    static_reaction,
     step_outcome,
     unknowns_like,
 )
@@ -45,8 +43,10 @@ from ._event import AbstractEvent
 from ._frames import (
     at_equilibrium,
     diagnostics,
+    first_reactions,
     frame_fields,
     initial_frames,
+    step_reactions,
     step_buffers,
     write_dense_frames,
     write_frame,
@@ -366,12 +366,12 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
                               c["level"] + 1)
             t_new = jnp.where(pos == full, t_next, t + pos * (h / full))
             rec = record_substep(c["rec"], c["t"], hs_, ok, U=r.U, state=c["state"], v=c["v"], formed=r.formed)
-            reaction = reaction_force(scheme, scene, ctx, r.U) if save_reactions else None
+            reaction = step_reactions(scheme, scene, ctx, r.U) if save_reactions else None
             frames, n_saved = c["frames"], c["n_saved"]
             if dense:
                 frames, rec, n_saved = jax.lax.cond(ok, lambda: write_dense_frames(
                     scheme, scene, frames, rec, n_saved, ts_out, ctx, r.U, t_new, dissipated + c["D"], D,
-                    work + c["W"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), reaction),
+                    work + c["W"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), save_reactions),
                     lambda: (frames, rec, n_saved))
             return dict(
                 state=pick(new, c["state"]), t=t_new, frames=frames, n_saved=n_saved,
@@ -384,7 +384,8 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
             )
 
         init = dict(state=state, t=t, v=v, tan=tan, level=jnp.asarray(0), pos=jnp.asarray(0), rec=rec, frames=frames,
-                    n_saved=n_saved, reaction=jnp.zeros_like(state.x) if save_reactions else None,
+                    n_saved=n_saved, reaction=dict(reaction=jnp.zeros_like(state.x),
+                                                   reaction_mean=jnp.zeros_like(state.x)) if save_reactions else None,
                     its=jnp.asarray(0), kits=jnp.asarray(0), chord=jnp.asarray(0), rej=jnp.asarray(0), D=jnp.asarray(0.0),
                     W=jnp.asarray(0.0), res=jnp.asarray(0.0), failed=jnp.asarray(False))
         return jax.lax.while_loop(cond, body, init)
@@ -419,7 +420,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
                     n_done=c["n_done"] + (~failed).astype(int))
 
     frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
-                                     static_reaction(scene, state0, t0) if save_reactions else None, ts_out)
+                                     first_reactions(scene, state0, t0) if save_reactions else None, ts_out)
     steps = step_buffers(hs.shape[0])
     v_init = jnp.where(use_v0, v0, v_state0)
     init = dict(i=jnp.asarray(0), state=state0, t=t0, v=v_init, tan=empty_tangent(scheme, scene, solver),

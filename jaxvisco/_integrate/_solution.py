@@ -44,11 +44,13 @@ class Solution(eqx.Module):
       `gamma` (the internal variable, where `SaveAt(gamma=True)`), `energy` (the total
       energy H), `kinetic`, `free_energy`, `dissipated` (cumulative), `dissipation_rate`,
       `external_work` (cumulative work of the loads and moving supports),
-      `linear_momentum`, `angular_momentum`, and with `SaveAt(reactions=True)`
-      `reaction`: the force the supports exert on each held component (zero on the free
-      ones), the mean over the step that ends at the frame (its work is the energy
-      balance's reaction work); at the initial frame the internal minus the external
-      force there.
+      `linear_momentum`, `angular_momentum`, and with `SaveAt(reactions=True)` the force
+      the supports exert on each held component (zero on the free ones): `reaction` at
+      the frame's time (what a load cell reads: the rate of the momenta from the step's
+      time polynomial plus the internal minus the external force), and `reaction_mean`,
+      its mean over the step that ends at the frame (the time element's own discrete
+      reaction, whose work is the energy balance's reaction work); at the initial frame
+      both are the internal minus the external force.
     - Steps (one entry per step): `step_t` (end time), `step_h`, `newton_iterations`,
       `krylov_iterations`, `chord_iterations`, `residual`, `rejections`.
     - `status`: `"done"`, `"equilibrium"` (stopped by `Equilibrium`), `"failed"` (with
@@ -88,8 +90,9 @@ class Solution(eqx.Module):
     end_velocity: jax.Array | None = None  # predictor velocity after the last step (restarts)
     strain_scale: jax.Array | None = None  # adaptive runs: the largest strain reached (restarts: PIDController)
     reaction: jax.Array | None = None  # SaveAt(reactions=True): the supports' forces (frames, n_nodes, dim)
+    reaction_mean: jax.Array | None = None  # and their means over the steps that end at the frames
 
-    def reaction_force(self, nodes=None, component: int | None = None) -> jax.Array:
+    def reaction_force(self, nodes=None, component: int | None = None, mean: bool = False) -> jax.Array:
         """The resultant force the supports exert, per frame.
 
         **Arguments:**
@@ -97,11 +100,12 @@ class Solution(eqx.Module):
         - `nodes`: node indices or a boolean mask of the nodes to sum over (default: all
           held ones).
         - `component`: one component of the force (default: all).
+        - `mean`: sum `reaction_mean` (the means over the steps) instead of `reaction`.
 
         **Returns:**
 
-        The nodal `reaction` summed over `nodes`, shape `(frames, dim)`, or `(frames,)`
-        with `component`.
+        The nodal forces summed over `nodes`, shape `(frames, dim)`, or `(frames,)` with
+        `component`.
 
         **Raises:**
 
@@ -113,7 +117,8 @@ class Solution(eqx.Module):
         if nodes is not None:
             nodes = np.asarray(nodes)
             nodes = np.flatnonzero(nodes) if nodes.dtype == bool else nodes
-        r = self.reaction if nodes is None else self.reaction[:, nodes]
+        r = self.reaction_mean if mean else self.reaction
+        r = r if nodes is None else r[:, nodes]
         total = jnp.sum(r, axis=1)
         return total if component is None else total[:, component]
 
@@ -127,7 +132,8 @@ class Solution(eqx.Module):
         outside `jax.jit`)."""
         ns, nt = int(self.n_saved), int(self.n_steps)
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
-                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction")
+                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction",
+                  "reaction_mean")
         out = self
         for name in frames:
             if getattr(self, name) is not None:

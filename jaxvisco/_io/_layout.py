@@ -6,8 +6,8 @@ Layout of ``name.h5`` (format 2; ``n`` committed frames, ``N`` nodes, ``d`` = 2 
 - ``/mesh/points`` (N, d), ``/mesh/cells`` (n_cells, nodes per cell), attribute
   ``cell_type`` (jaxvisco name, e.g. ``"quad4"``).
 - ``/time`` (n,); ``/nodal/x``, ``/nodal/p`` (n, N, d); ``/qp/gamma`` (n, n_cells,
-  n_qp, 3, 3) only when asked for; ``/nodal/reaction`` (n, N, d), the supports' forces,
-  only when the run saved them (``SaveAt(reactions=True)``).
+  n_qp, 3, 3) only when asked for; ``/nodal/reaction``, ``/nodal/reaction_mean`` (n, N,
+  d), the supports' forces, only when the run saved them (``SaveAt(reactions=True)``).
 - ``/diagnostics/{energy, kinetic, free_energy, dissipated, dissipation_rate,
   external_work}`` (n,), ``linear_momentum`` (n, d), ``angular_momentum`` (n,) in 2D,
   (n, 3) in 3D; ``dissipated`` and ``external_work`` cumulative from frame 0.
@@ -42,7 +42,7 @@ from .._integrate._solution import STEP_KEYS
 FORMAT = 2
 FRAME_KEYS = ("energy", "kinetic", "free_energy", "dissipated", "dissipation_rate", "external_work",
               "linear_momentum", "angular_momentum")
-FRAME_DATASETS = (("time", "nodal/x", "nodal/p", "qp/gamma", "nodal/reaction")
+FRAME_DATASETS = (("time", "nodal/x", "nodal/p", "qp/gamma", "nodal/reaction", "nodal/reaction_mean")
                   + tuple("diagnostics/" + k for k in FRAME_KEYS))
 STEP_DATASETS = tuple("steps/" + k for k in STEP_KEYS)
 XDMF_FIELDS = ("geometry", "displacement", "momentum")

@@ -32,7 +32,8 @@ def _frames(f, path, last_only=False):
     c = committed(f)
     out = dict(points=np.asarray(f["mesh/points"]), cells=np.asarray(f["mesh/cells"]),
                cell_type=str(f["mesh/cells"].attrs.get("cell_type", "")))
-    keys = [("t", "time"), ("x", "nodal/x"), ("p", "nodal/p"), ("gamma", "qp/gamma"), ("reaction", "nodal/reaction")]
+    keys = [("t", "time"), ("x", "nodal/x"), ("p", "nodal/p"), ("gamma", "qp/gamma"), ("reaction", "nodal/reaction"),
+            ("reaction_mean", "nodal/reaction_mean")]
     keys += [(k, "diagnostics/" + k) for k in FRAME_KEYS]
     for key, name in keys + ([] if last_only else [(k, "steps/" + k) for k in STEP_KEYS]):
         n = c.n_steps if name.startswith("steps/") else c.n_frames
@@ -60,9 +61,9 @@ def read_results(path: str | os.PathLike) -> dict:
 
     **Returns:**
 
-    A dict with `points`, `cells`, `cell_type`, `t`, `x`, `p` (and `gamma` and
-    `reaction` if stored), every diagnostic and step array under its `Solution` name,
-    and `attrs` (the root attributes).
+    A dict with `points`, `cells`, `cell_type`, `t`, `x`, `p` (and `gamma`, `reaction`
+    and `reaction_mean` if stored), every diagnostic and step array under its `Solution`
+    name, and `attrs` (the root attributes).
 
     **Raises:**
 

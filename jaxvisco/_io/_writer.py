@@ -261,12 +261,13 @@ class ResultsWriter:
         p = np.asarray(sol.p)[s:]
         g = None if getattr(sol, "gamma", None) is None else np.asarray(sol.gamma)[s:]
         r = None if getattr(sol, "reaction", None) is None else np.asarray(sol.reaction)[s:]
+        rm = None if getattr(sol, "reaction_mean", None) is None else np.asarray(sol.reaction_mean)[s:]
         diag = {}
         for k in FRAME_KEYS:
             v = np.asarray(getattr(sol, k), dtype=np.float64)
             diag[k] = (v + self._offset[k] if k in self._offset else v)[s:]
         finite = np.isfinite(t) & _all_finite(x) & _all_finite(p)
-        for v in list(diag.values()) + [a for a in (g, r) if a is not None]:
+        for v in list(diag.values()) + [a for a in (g, r, rm) if a is not None]:
             finite &= _all_finite(v)
         n_ok = len(t) if finite.all() else int(np.argmin(finite))
         steps = {k: np.asarray(getattr(sol, k)) for k in STEP_KEYS if getattr(sol, k, None) is not None}
@@ -276,7 +277,7 @@ class ResultsWriter:
             self.dropped_nonfinite = True
             self.f.attrs["status"] = "failed"
             t, x, p = t[:n_ok], x[:n_ok], p[:n_ok]
-            g, r = (None if a is None else a[:n_ok] for a in (g, r))
+            g, r, rm = (None if a is None else a[:n_ok] for a in (g, r, rm))
             diag = {k: v[:n_ok] for k, v in diag.items()}
         # The statistics of the steps up to the last frame written: later steps (of a run
         # that failed between saved frames) left no state to restart from.
@@ -287,7 +288,7 @@ class ResultsWriter:
             self._flush()
             return
         # phase 1: everything past the committed state
-        for name, data in zip(FRAME_DATASETS, (t, x, p, g, r) + tuple(diag[k] for k in FRAME_KEYS)):
+        for name, data in zip(FRAME_DATASETS, (t, x, p, g, r, rm) + tuple(diag[k] for k in FRAME_KEYS)):
             if n_ok and data is not None and (name != "qp/gamma" or gamma):
                 self._write_rows(name, n0, data)
         for name, k in zip(STEP_DATASETS, STEP_KEYS):

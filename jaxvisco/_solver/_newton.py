@@ -160,11 +160,26 @@ class NewtonResult(eqx.Module):
     formed: jax.Array | None = None  # whether this solve formed its tangent (derivatives re-form theirs there)
 
 
-def _scale(ctx, scene, R0):
-    """Momentum scale of a step: |p_0|, the step's force impulse, and a floor tied to the
-    positions so that a body at rest still has a meaningful relative tolerance."""
+def force_impulse(ctx, scene):
+    """The step's force impulse at its start: h times the largest internal force or load
+    on a component, a part of the momentum scale that does not vanish where the momenta
+    do (a quasi-static body, density 1e-9)."""
+    f = scene.internal_force(ctx.state.x, ctx.state.gamma)
+    if scene.loads is not None:
+        f = jnp.maximum(jnp.abs(f), jnp.abs(scene.external_force(ctx.t0)))
+    return ctx.h * jnp.max(jnp.abs(f))
+
+
+def _scale(ctx, scene, R0, impulse):
+    """Momentum scale of a step: |p_0|, the residual at the predictor, the step's force
+    impulse (`force_impulse`), and a floor tied to the positions so that a body at rest
+    still has a meaningful relative tolerance. Without the force impulse a quasi-static
+    body whose predictor was good had a scale near the residual's rounding (the momenta
+    and the predictor's residual small beside the forces they balance), and its steps
+    converged or failed by that rounding: rejections that came and went with the
+    parameters (a specimen fitted from exact data stopped at 1e-3 off)."""
     p = jnp.max(jnp.abs(ctx.state.p))
-    f = jnp.max(jnp.abs(R0.x))
+    f = jnp.maximum(jnp.max(jnp.abs(R0.x)), impulse)
     mx = jnp.max(jnp.abs(scene.disc.mass_matvec(ctx.state.x, scene.density))) / ctx.h
     return jnp.maximum(jnp.maximum(p, f), 1e-8 * mx)
 
@@ -215,6 +230,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     line search's backtracking trials are further passes that skip the solve.
     """
     res_D = lambda U: _residual(scheme, scene, ctx, U)  # noqa: E731  (R, D_n or None)
+    impulse = force_impulse(ctx, scene)
     res = lambda U: res_D(U)[0]  # noqa: E731
     direct = isinstance(solver.linear_solver, Direct)
     lin = solver.linear_solver
@@ -243,7 +259,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
             jvp = lambda v: jax.jvp(res, (Ut,), (v,))[1]  # noqa: E731
         else:
             Rt, jvp, Dt = jax.linearize(res_D, Ut, has_aux=True)
-        sx = jnp.where(first, _scale(ctx, scene, Rt), c["sx"])
+        sx = jnp.where(first, _scale(ctx, scene, Rt, impulse), c["sx"])
         norm_t = _norm(Rt, sx)
         decrease = _merit(Rt, sx) <= (1.0 - 1e-4 * c["a"]) * _merit(c["R"], sx)
         accept = first | decrease | (c["n_ls"] >= solver.line_search)
@@ -315,7 +331,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
         formed_at_start = stale | mismatch
         stale = mismatch = jnp.asarray(False)
     if solver.chord and not direct:
-        chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none)
+        chord_state = _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none, impulse)
         U_start, chord_its, chord_done = chord_state["U"], chord_state["it"], chord_state["done"]
     init = dict(U=U_start, R=zero, D=D_none,
                 norm=jnp.asarray(jnp.inf), prev=jnp.asarray(jnp.inf), sx=jnp.asarray(1.0), dU=zero,
@@ -337,7 +353,7 @@ def solve_step(solver: NewtonKrylov, scheme, scene, ctx, U0, tangent: Tangent) -
     return NewtonResult(c["U"], converged, c["it"], c["kits"], chord_its, c["norm"], tan, c["D"], formed)
 
 
-def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none):
+def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_none, impulse):
     """Chord iterations on the stored factorization: U <- U - P^{-1} R(U), one residual and
     one block solve each, while the residual contracts by `chord_contraction` per
     iteration; stops at convergence (rtol, strictly) or hands the last point reached by
@@ -358,7 +374,7 @@ def _chord(solver, scheme, scene, ctx, U0, tangent, rotation, stale, res_D, D_no
 
     def body(c):
         R, D = res_D(c["Ut"])
-        sx = jnp.where(c["it"] == 0, _scale(ctx, scene, R), c["sx"])
+        sx = jnp.where(c["it"] == 0, _scale(ctx, scene, R, impulse), c["sx"])
         norm = _norm(R, sx)
         contracting = (c["it"] == 0) | (norm <= solver.chord_contraction * c["norm"])
         better = contracting & jnp.isfinite(norm)

@@ -8,6 +8,7 @@ the momentum equations become a system in positions, like Newmark's in displacem
 """
 
 import functools
+import operator
 from typing import Optional
 
 import equinox as eqx
@@ -15,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._fem._quadrature import gauss_legendre
 from .._fem._tensor import small_solve, sym_to_vec, vec_to_sym
 from .._scene import Scene, State
 
@@ -191,25 +193,45 @@ def external_work(scheme, scene, ctx, U):
     return work + jnp.sum(jnp.asarray(m["weights"])[:, None, None] * Xd * fext)
 
 
-def reaction_force(scheme, scene, ctx, U):
-    r"""The force the supports exert on the held components over the step (n, d; zero on
-    the free ones): the time element's own discrete reaction, its impulse over the step
-    divided by h, $\bar r = \sum_J R_J / h$ ($R$ the momentum equations without the
-    constraint; the test functions sum to one, so $\sum_J R_J = \int r\,dt$). Its work
-    over a step in which the held components move at a constant velocity v is $h\,\bar
-    r \cdot v$, `reaction_work`'s exactly. A mean over the step: for eG(1) the reaction is
-    constant within a step."""
+def reaction_coefficients(scheme, scene, ctx, U):
+    r"""The force the supports exert on the held components over the step, as the time
+    element's own Lagrange multiplier: the polynomial $r(t)$ of degree k-1 (the test
+    space) whose moments are the held rows of the momentum equations without the
+    constraint, $h\int_0^1 r\,T_J\,ds = R_J$. On the test functions' nodes (the k Gauss
+    points, where $\int_0^1 T_I T_J\,ds = w_J \delta_{IJ}$) its values are
+    $R_J / (h\,w_J)$ (k, n, d; zero on the free components). Summed over the held
+    components it is the rate of the body's linear momentum minus the loads at every
+    time of the step (the internal forces sum to zero), its mean over the step is the
+    impulse over h, and its work where the held components move at a constant velocity
+    is `reaction_work`'s. For eG(1) it is constant within a step."""
     R_x, _ = _unconstrained_residual(scheme, scene, ctx, U)
-    return jnp.where(jnp.asarray(scene.fixed.array), jnp.sum(R_x, axis=0) / ctx.h, 0.0)
+    w = jnp.asarray(gauss_legendre(scheme.k)[1], R_x.dtype)
+    return jnp.where(jnp.asarray(scene.fixed.array)[None], R_x / (ctx.h * w[:, None, None]), 0.0)
 
 
-def static_reaction(scene, state, t):
-    """The force the supports exert on a body at rest in `state` at time `t` (n, d; zero
-    on the free components): internal minus external force at the held components (the
-    reaction of an initial frame, which no step precedes)."""
+def reaction_at(scheme, coefficients, sigma):
+    """`reaction_coefficients`' polynomial at the fraction `sigma` of the step."""
+    nodes = gauss_legendre(scheme.k)[0]
+    basis = [functools.reduce(operator.mul, [(sigma - b) / (a - b) for b in nodes if b != a], 1.0)
+             for a in nodes]
+    return sum(T * c for T, c in zip(basis, coefficients))
+
+
+def mean_reaction(coefficients, scheme):
+    """`reaction_coefficients`' mean over the step (the impulse over h)."""
+    w = jnp.asarray(gauss_legendre(scheme.k)[1], coefficients.dtype)
+    return jnp.einsum("J,Jnd->nd", w, coefficients)
+
+
+def static_reaction(scene, state, t, momentum_rate=None):
+    """The force the supports exert on the held components of a body in `state` at time
+    `t` (n, d; zero on the free components): the rate of the momenta (`momentum_rate`,
+    default zero: a body at rest) plus the internal minus the external force there."""
     f = scene.internal_force(state.x, state.gamma)
     if scene.loads is not None:
         f = f - scene.external_force(t)
+    if momentum_rate is not None:
+        f = f + momentum_rate
     return jnp.where(jnp.asarray(scene.fixed.array), f, 0.0)
 
 

@@ -54,7 +54,10 @@ class AbstractObservable(eqx.Module):
 
 class ReactionForce(AbstractObservable):
     """A load cell: the resultant force the supports exert on a group of held nodes in one
-    direction, one column. Its run saves the reactions (`SaveAt(reactions=True)`).
+    direction, one column: the time element's reaction at each sample time
+    (`Solution.reaction`), a polynomial of degree k-1 within a step. With eG(1) that is
+    the mean over the step, first order in the step size; use k >= 2 where forces are
+    fitted. Its run saves the reactions (`SaveAt(reactions=True)`).
 
     **Arguments:**
 
