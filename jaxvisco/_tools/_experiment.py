@@ -91,7 +91,7 @@ class Experiment(eqx.Module):
     test = jv.scenes.specimen("relaxation", elements=(2, 1, 1), t1=0.6)
     times = np.linspace(0.0, 0.6, 7)
     force = np.zeros((7, 1))                       # the load cell's record
-    e = jv.Experiment(test.scene, jv.eG(1), times, force, jv.ReactionForce(test.grip, "x"),
+    e = jv.Experiment(test.scene, jv.eG(2), times, force, jv.ReactionForce(test.grip, "x"),
                       dt0=test.dt0, name="relaxation")
     print(e.labels)                                # ['force']
     ```

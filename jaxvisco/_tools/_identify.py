@@ -467,10 +467,10 @@ def identify(experiments, parameters: Optional[dict] = None, *args, method: str 
     test = jv.scenes.specimen("relaxation", elements=(2, 1, 1), t1=1.0, dt0=0.1)
     times = np.linspace(0.0, 1.0, 11)
     load_cell = jv.ReactionForce(test.grip, "x", name="force")
-    model = jv.Experiment(test.scene, jv.eG(1), times, np.zeros((11, 1)), load_cell, dt0=0.1)
+    model = jv.Experiment(test.scene, jv.eG(2), times, np.zeros((11, 1)), load_cell, dt0=0.1)
     force = model.model(model.run())            # what the test measures at eta_dev = 2
 
-    e = jv.Experiment(test.scene, jv.eG(1), times, force, load_cell, dt0=0.1, name="relaxation")
+    e = jv.Experiment(test.scene, jv.eG(2), times, force, load_cell, dt0=0.1, name="relaxation")
     fit = jv.identify(e, {"eta_dev": jv.Parameter(6.0, lower=0.1, upper=100.0)})
     print(fit.params["eta_dev"], fit.intervals["eta_dev"])
     ```
