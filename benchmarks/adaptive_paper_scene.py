@@ -53,7 +53,7 @@ def main():
     T = args.t_end
     scene = jv.scenes.lshape(dim=2, refinement=1)
     ref = Reference(scene, T, 0.0025)
-    ref_check = run_errors(ref, jv.simulate(scene, jv.eG(3), t1=T, dt0=0.005, solver=TIGHT,
+    ref_check = run_errors(ref, jv.simulate(scene, jv.eG(3), t1=T, dt0=0.005, root_finder=TIGHT,
                                             max_steps=int(round(T / 0.005)) + 1))
     print(f"reference eG(3) h = 0.0025; h = 0.005 differs by x {ref_check['x']:.1e}, D {ref_check['D']:.1e}",
           flush=True)

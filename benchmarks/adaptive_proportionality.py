@@ -33,7 +33,7 @@ class Reference:
     energy at any time in [0, t_end] by cubic Hermite interpolation."""
 
     def __init__(self, scene, t_end, h):
-        sol = jv.simulate(scene, jv.eG(3), t1=t_end, dt0=h, solver=TIGHT, max_steps=int(round(t_end / h)) + 1)
+        sol = jv.simulate(scene, jv.eG(3), t1=t_end, dt0=h, root_finder=TIGHT, max_steps=int(round(t_end / h)) + 1)
         self.h, self.t = h, np.asarray(sol.t)
         self.x, self.d = np.asarray(sol.x), np.asarray(sol.dissipated)
         self.v = np.asarray(jax.jit(jax.vmap(scene.velocity))(sol.p))
@@ -74,7 +74,7 @@ def main():
     for k in (int(k) for k in args.orders.split(",")):
         rows = []
         for tol in TOLS:
-            sol = jv.simulate(scene, jv.eG(k), t1=args.t_end, dt0=None, solver=TIGHT, max_steps=20000,
+            sol = jv.simulate(scene, jv.eG(k), t1=args.t_end, dt0=None, root_finder=TIGHT, max_steps=20000,
                               stepsize_controller=jv.PIDController(rtol=tol, atol=tol))
             e_x, e_d = ref.errors(sol)
             rows.append(dict(tol=tol, steps=int(sol.n_steps), rejected=int(np.sum(np.asarray(sol.rejections))),

@@ -54,7 +54,7 @@ def samples(t_end):
 def adaptive(scene, k, tol, t_end, solver=None):
     """An adaptive run with frames at the sample times."""
     return jv.simulate(scene, jv.eG(k), t1=t_end, dt0=None, stepsize_controller=jv.PIDController(tol, tol),
-                       saveat=jv.SaveAt(ts=samples(t_end), gamma=True), solver=solver, max_steps=40000)
+                       saveat=jv.SaveAt(ts=samples(t_end), gamma=True), root_finder=solver, max_steps=40000)
 
 
 def constant(scene, k, m, t_end):

@@ -35,7 +35,7 @@ def schemes():
 def lshape(dim=2, refinement=1, element=None, mass="lumped", viscous=True, lam=PAPER["lam"], mu=PAPER["mu"],
            eta_dev=PAPER["eta_dev"], eta_vol=PAPER["eta_vol"]):
     """The paper's L-shape (as `jaxvisco.scenes.lshape`) with a choice of mass matrix."""
-    mesh = jv.lshape_mesh(dim=dim, refinement=refinement, element=element)
+    mesh = jv.lshape_mesh(dim=dim, refinement=refinement, cell_type=element)
     nh = jv.NeoHooke(lam=lam, mu=mu)
     material = jv.ReeseGovindjee(nh, jv.NeoHooke(lam=PAPER["lam"], mu=PAPER["mu"]) if viscous else None,
                                  eta_dev=eta_dev, eta_vol=eta_vol)

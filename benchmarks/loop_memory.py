@@ -36,7 +36,7 @@ def loop_arguments(scene, solver, steps=2, h=0.1):
 
     _simulate._run = capture
     try:
-        jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, saveat=jv.SaveAt(every=steps), solver=solver)
+        jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, saveat=jv.SaveAt(every=steps), root_finder=solver)
     except _Captured:
         pass
     finally:

@@ -50,7 +50,7 @@ def worker(element, refinement, steps, h, preconditioner="lu", precision="single
 
     def go(n=steps):  # n < steps: the same compiled loop (max_steps), n steps of it active
         return jv.simulate(scene, jv.eG(1), t1=n * h, dt0=h, saveat=jv.SaveAt(every=steps), max_steps=steps,
-                           solver=solver)
+                           root_finder=solver)
 
     t0 = time.perf_counter()
     sol = go()
@@ -265,7 +265,7 @@ def _available_mb():
 
 
 def lshape_dofs(element, r):
-    return int(jv.lshape_mesh(dim=3, refinement=r, element=element).n_nodes * 3)
+    return int(jv.lshape_mesh(dim=3, refinement=r, cell_type=element).n_nodes * 3)
 
 
 if __name__ == "__main__":

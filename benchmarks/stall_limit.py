@@ -49,9 +49,9 @@ def worker(halvings, t_end):
             if h != halvings:
                 continue
             solver = jv.NewtonKrylov(stall_limit=limit)
-            jv.simulate(scene, scheme, solver=solver, throw=False, **kw)
+            jv.simulate(scene, scheme, root_finder=solver, throw=False, **kw)
             t0 = time.perf_counter()
-            sol = jv.simulate(scene, scheme, solver=solver, throw=False, **kw)
+            sol = jv.simulate(scene, scheme, root_finder=solver, throw=False, **kw)
             wall = time.perf_counter() - t0
             n = lambda key: int(np.asarray(getattr(sol, key)).sum())  # noqa: E731
             rows.append(dict(case=name, halvings=halvings, stall_limit=limit, status=sol.status,

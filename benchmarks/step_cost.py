@@ -68,13 +68,13 @@ def rhs_ms(scene, n=50):
 
 def case(scene, scheme, solver, n_steps, rhs_scene, h=0.1, repeats=5):
     t0 = time.perf_counter()
-    sol = jv.simulate(scene, scheme, t1=n_steps * h, dt0=h, solver=solver, saveat=jv.SaveAt(every=n_steps))
+    sol = jv.simulate(scene, scheme, t1=n_steps * h, dt0=h, root_finder=solver, saveat=jv.SaveAt(every=n_steps))
     first = time.perf_counter() - t0
     res_med, res_min = residual_ms(scene, scheme, h)
     walls = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        sol = jv.simulate(scene, scheme, t1=n_steps * h, dt0=h, solver=solver, saveat=jv.SaveAt(every=n_steps))
+        sol = jv.simulate(scene, scheme, t1=n_steps * h, dt0=h, root_finder=solver, saveat=jv.SaveAt(every=n_steps))
         walls.append(time.perf_counter() - t0)
     wall = statistics.median(walls)
     best = min(walls)

@@ -571,7 +571,7 @@ def main(argv=None):
         elif a.reference == "eG":
             t0 = time.perf_counter()
             sol = jv.simulate(scene, all_schemes()[ref_scheme], t1=T, dt0=ref_h, saveat=jv.SaveAt(every=cap_ref),
-                              max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
+                              max_steps=cap_ref, root_finder=jv.NewtonKrylov(rtol=1e-12))
             ref_wall = time.perf_counter() - t0
             ref = dict(x=np.asarray(sol.x[-1]), H=float(sol.energy[-1]), D=float(sol.dissipated[-1]))
             print(f"  reference {ref_scheme} h={ref_h}: H(T)={ref['H']:.12g}, D(T)={ref['D']:.12g}, "
@@ -600,7 +600,7 @@ def main(argv=None):
         elif a.check == "eG-2h":
             t0 = time.perf_counter()
             s2 = jv.simulate(scene, all_schemes()[ref_scheme], t1=T, dt0=2 * ref_h, saveat=jv.SaveAt(every=cap_ref),
-                             max_steps=cap_ref, solver=jv.NewtonKrylov(rtol=1e-12))
+                             max_steps=cap_ref, root_finder=jv.NewtonKrylov(rtol=1e-12))
             w2 = time.perf_counter() - t0
             check = dict(check=f"{ref_scheme} at h = {2 * ref_h:g} (the difference bounds the error of that run; "
                                "the reference's own is ~2^-(2k) of it)", radau_rtol=None, check_wall_s=w2,

@@ -20,7 +20,6 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jaxvisco as jv  # noqa: E402
-from jaxvisco.cli._identify import read_fit_file  # noqa: E402
 
 HERE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fit")
 
@@ -35,8 +34,6 @@ def observables(scene, nodes, test):
 
 
 def main(argv=None):
-    from jaxvisco._scenefile._scenefile import read_scene_file
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--noise", type=float, default=0.01)
     ap.add_argument("--seed", type=int, default=0)
@@ -45,11 +42,11 @@ def main(argv=None):
     rng = np.random.default_rng(args.seed)
     os.makedirs(args.out, exist_ok=True)
     for test in ("relaxation", "cyclic", "creep"):
-        sf = read_scene_file(os.path.join(HERE, f"{test}.toml"))
+        sf = jv.read_scene_file(os.path.join(HERE, f"{test}.toml"))
         obs = observables(sf.scene, sf.nodes, test)
-        times = np.linspace(0.0, sf.t_end, int(round(sf.t_end / 0.05)) + 1)
+        times = np.linspace(0.0, sf.t1, int(round(sf.t1 / 0.05)) + 1)
         e = jv.Experiment(sf.scene, sf.integrator, times, np.zeros((len(times), len(obs))), list(obs.values()),
-                          dt0=sf.dt, name=test)
+                          dt0=sf.dt0, name=test)
         clean = np.asarray(jax.jit(lambda s: e.model(e.run(s)))(sf.scene))
         noisy = clean + args.noise * np.sqrt(np.mean(clean**2, axis=0)) * rng.standard_normal(clean.shape)
         path = os.path.join(args.out, f"{test}.csv")

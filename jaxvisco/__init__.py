@@ -27,6 +27,9 @@ from ._fem._generators import rectangle as rectangle
 from ._fem._groups import MeshGroups as MeshGroups
 from ._fem._groups import read_mesh as read_mesh
 from ._fem._mesh import Mesh as Mesh
+from ._fem._rigid import rigid_velocity as rigid_velocity
+from ._fem._select import clamp as clamp
+from ._fem._select import nodes_in as nodes_in
 from ._fem._probe import Probe as Probe
 from ._integrate._adjoint import AbstractAdjoint as AbstractAdjoint
 from ._integrate._adjoint import (

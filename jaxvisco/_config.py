@@ -27,7 +27,14 @@ __version__ = "0.2.0"  # jaxvisco.__version__ (defined here so that inner layers
 
 
 def require_x64() -> None:
-    """Raise a clear error if JAX is not running in float64."""
+    """Check that JAX computes in float64, as jaxvisco needs (it never switches JAX's
+    precision itself; every `Scene` checks this when it is built).
+
+    **Raises:**
+
+    `RuntimeError` naming the fix (`jax.config.update("jax_enable_x64", True)` or
+    `JAX_ENABLE_X64=1`) when JAX runs in float32.
+    """
     if not jax.config.read("jax_enable_x64"):
         raise RuntimeError(
             "jaxvisco needs float64 but JAX runs in float32. Enable it before building "
@@ -47,32 +54,44 @@ def default_cache_dir():
     return os.path.join(base, "jaxvisco")
 
 
-def enable_compilation_cache(path=None, *, shared=None):
-    """Keep the time loops on disk, so that a new process neither traces nor compiles
-    them again: JAX's persistent compilation cache holds the compiled programs, and
-    ``jaxvisco-export/`` inside it the traced ones (`jax.export`, as data: a JSON header
-    and the serialized program, never a pickle).
+def enable_compilation_cache(path: "str | os.PathLike | None" = None, *, shared: "bool | None" = None) -> "str | None":
+    """Keep the compiled programs on disk, so that a new process neither traces nor
+    compiles the time loops again.
 
-    **Trust.** A cache entry is a program this process runs, so whoever can write to the
-    directory can run code as you. The directory is created private (mode 0700), and a
-    directory that another user owns, or that group or others can write to (or a parent
-    of it, unless sticky like ``/tmp``), is refused with a `CacheWarning` naming it and
-    the fix; the run then goes on without the cache.
+    JAX's persistent compilation cache holds the compiled programs, and
+    `jaxvisco-export/` inside it jaxvisco's traced ones (stored as data, never as
+    pickles). A cache entry is a program this process runs, so whoever can write to the
+    directory can run code as you: the directory is created private (mode 0700), and one
+    that another user owns, or that group or others can write to (or a parent of it,
+    unless sticky like `/tmp`), is refused with a `CacheWarning` that names it and the
+    fix; the run then goes on without the cache.
 
     **Arguments:**
-    - `path`: the cache directory (default `default_cache_dir()`, which honours
-      ``JAXVISCO_CACHE_DIR``; ``JAXVISCO_CACHE_DIR=off`` turns it off).
+
+    - `path`: the cache directory (default `$JAXVISCO_CACHE_DIR`, else
+      `$XDG_CACHE_HOME/jaxvisco`, else `~/.cache/jaxvisco`; `JAXVISCO_CACHE_DIR=off`
+      turns the cache off).
     - `shared`: True to use a directory that others can write to on purpose (a group
-      cache on a cluster): you then trust everyone who can write there. Default: the
-      environment variable ``JAXVISCO_CACHE_SHARED=1``, else False.
+      cache on a cluster): you then trust everyone who can write there. Default: True
+      where the environment sets `JAXVISCO_CACHE_SHARED=1`, else False.
 
-    Call it once, before the first `simulate`; it sets JAX's ``jax_compilation_cache_dir``
-    for the whole process, and JAX's ``jax_persistent_cache_min_compile_time_secs`` to 0:
-    every program is cached, also the many small ones around the time loops that each
-    compile in milliseconds. The ``jaxvisco`` command calls it for you.
+    Call it once, before the first `simulate`: it sets JAX's cache directory for the
+    whole process and caches every program, also the small ones around the time loops.
+    The `jaxvisco` command calls it for you.
 
-    **Returns:** the directory, or None (off, refused, or not creatable; never raises
-    for those).
+    **Returns:**
+
+    The directory, or None where the cache is off, refused or cannot be created (it
+    never raises for those).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    path = jv.enable_compilation_cache("jaxvisco-cache")
+    print(path)
+    ```
     """
     import warnings
 
@@ -142,19 +161,31 @@ _CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_IND
 
 
 @functools.cache
-def compiler_options():
-    """The XLA options jaxvisco compiles its programs with on CPU (none on other backends):
-    those of the CPU options above that this jaxlib knows (they are experimental or may
-    go; probed together, and one by one where that fails: an unknown one is left out), none with
-    ``JAXVISCO_XLA_OPTIONS=off`` (XLA's defaults). Call it outside any JAX transformation
-    (JAX accepts compile options on top-level programs only).
+def compiler_options() -> dict:
+    """The XLA options jaxvisco compiles its own programs with.
 
-    Programs of your own that contain jaxvisco's kernels (an ODE solver around
-    `semidiscrete(scene).vector_field`, a loss around them) want them too:
-    ``jax.jit(f, compiler_options=jaxvisco.compiler_options())``. The point kernels'
-    3x3 products (`_tensor.mm`) are written for XLA's loop emitters; with XLA's defaults
-    one right-hand side of the 2D L-shape costs 66 us instead of 24 us (refinement 1)
-    and 1.51 ms instead of 0.38 ms (refinement 4)."""
+    On CPU: XLA's loop emitters instead of its fusion emitters, single dot products for
+    its YNNPACK library, no tree reductions (each only where this jaxlib knows the
+    option); none on other backends, and none with `JAXVISCO_XLA_OPTIONS=off`. Programs
+    of your own that contain jaxvisco's kernels (an ODE solver around
+    `semidiscrete(scene).vector_field`, a loss around them) want them too: jaxvisco's
+    3x3 products are written for the loop emitters, and with XLA's defaults they cost
+    several times as much (the benchmarks pages have the measurements). Call it outside
+    any JAX transformation (JAX takes compile options for top-level programs only).
+
+    **Returns:**
+
+    A dict for `jax.jit(..., compiler_options=...)`.
+
+    **Example:**
+
+    ```python
+    import jax
+    import jaxvisco as jv
+
+    f = jax.jit(lambda x: 2.0 * x, compiler_options=jv.compiler_options())
+    ```
+    """
     if os.environ.get("JAXVISCO_XLA_OPTIONS", "").strip().lower() in ("off", "0", "none", "default"):
         return {}
     if jax.default_backend() != "cpu":  # measured on CPU only; GPUs want their tree reductions

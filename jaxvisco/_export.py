@@ -188,7 +188,9 @@ def directory():
 
 
 class CacheWarning(UserWarning):
-    """A compilation cache directory was refused (others could write to it)."""
+    """The warning `enable_compilation_cache` gives when it refuses a cache directory
+    (another user owns it, or others can write to it) or cannot create one; the message
+    names the directory and the fix, and the run goes on without the cache."""
 
 
 _TRUSTED = set()  # directories declared shared and trusted (`enable_compilation_cache(shared=True)`)

@@ -21,9 +21,24 @@ class NeoHooke(eqx.Module):
     $J = \sqrt{\det C}$.
 
     It depends on invariants only, so it may be called with the non-symmetric
-    $C_e = C\Gamma^{-1}$ of the non-equilibrium branch.
+    $C_e = C\Gamma^{-1}$ of the non-equilibrium branch. Called on a 3x3 tensor $C$ it
+    returns $\psi(C)$.
 
-    **Arguments:** `lam`, `mu`: Lamé parameters (> 0).
+    **Arguments:**
+
+    - `lam`, `mu`: the Lamé parameters (> 0; array leaves, so differentiable).
+
+    **Raises:**
+
+    `ValueError` for a parameter that is not positive and finite.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    nh = jv.NeoHooke(lam=30000.0, mu=7500.0)
+    ```
     """
 
     lam: jax.Array
@@ -79,16 +94,33 @@ class ReeseGovindjee(eqx.Module):
     $\mathbb{V}^{-1}:A = \operatorname{dev}A/(2\eta_{dev}) + \operatorname{tr}A/(9\eta_{vol})\,I$.
 
     **Arguments:**
-    - `equilibrium`: scalar energy $\Psi_{eq}(C)$ (e.g. `NeoHooke`, or any function).
-    - `nonequilibrium`: scalar energy $\Psi_{neq}(C_e)$ of invariants of $C_e$, or `None`
-      for a purely elastic material, which carries no internal variable at all. One with
-      `from_invariants(i1, ln_j)` and `increment_from_invariants(d_i1, ln_j0, d_ln_j)`
-      (as `NeoHooke`) is evaluated from $C : \Gamma^{-T}$ and $\ln\det C - \ln\det\Gamma$,
-      without forming $C_e$ (the same function; faster, see `_INVARIANTS`).
-    - `eta_dev`, `eta_vol`: viscosities (> 0; `inf` freezes that flow).
+
+    - `equilibrium`: the scalar energy $\Psi_{eq}(C)$ (a `NeoHooke`, or any function of
+      a 3x3 tensor).
+    - `nonequilibrium`: the scalar energy $\Psi_{neq}(C_e)$, a function of the
+      invariants of $C_e$, or None for an elastic material (no internal variable). One
+      with `from_invariants` and `increment_from_invariants` (as `NeoHooke`) is
+      evaluated without forming $C_e$ (the same function, faster).
+    - `eta_dev`, `eta_vol`: the deviatoric and volumetric viscosities (> 0; `inf`
+      freezes that flow).
 
     All parameters are array leaves: `jax.grad` with respect to them and
     `eqx.tree_at(lambda m: m.eta_dev, material, value)` work.
+
+    **Raises:**
+
+    `TypeError` for an energy that is not callable; `ValueError` for a viscosity that
+    is not positive.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    nh = jv.NeoHooke(lam=30000.0, mu=7500.0)
+    material = jv.ReeseGovindjee(nh, nh, eta_dev=50000.0, eta_vol=10000.0)
+    elastic = jv.ReeseGovindjee(nh)
+    ```
     """
 
     equilibrium: Callable
@@ -112,6 +144,7 @@ class ReeseGovindjee(eqx.Module):
 
     @property
     def has_internal_variable(self) -> bool:
+        """Whether the material is viscous (has a non-equilibrium branch)."""
         return self.nonequilibrium is not None
 
     # -- energy and its derivatives ------------------------------------------------
@@ -247,8 +280,14 @@ def _branch_increment(psi, C, dC):
     return psi(C + dC) - psi(C)
 
 
-def paper_material():
-    """The material of the paper's example: both branches Neo-Hookean with
-    λ = 30000, μ = 7500; η_dev = 50000, η_vol = 10000 (THEORY §4)."""
+def paper_material() -> ReeseGovindjee:
+    """The material of the paper's example (Groß & Betsch 2005; the theory page's
+    "The paper's example"): both branches Neo-Hookean with λ = 30000, μ = 7500;
+    η_dev = 50000, η_vol = 10000.
+
+    **Returns:**
+
+    A `ReeseGovindjee` material.
+    """
     nh = NeoHooke(lam=30000.0, mu=7500.0)
     return ReeseGovindjee(equilibrium=nh, nonequilibrium=nh, eta_dev=50000.0, eta_vol=10000.0)

@@ -18,8 +18,9 @@ from ._validation import _concrete, check_finite, check_positive
 
 
 class State(eqx.Module):
-    """Hamiltonian state: nodal positions `x`, nodal momenta `p`, and the internal
-    variable `gamma` at every spatial quadrature point (None for elastic scenes)."""
+    """The state of a body: nodal positions `x` `(n_nodes, dim)`, nodal momenta `p`
+    `(n_nodes, dim)`, and the internal variable `gamma` `(n_cells, n_qp, 3, 3)` at every
+    spatial quadrature point (None for elastic scenes)."""
 
     x: jax.Array
     p: jax.Array
@@ -27,9 +28,10 @@ class State(eqx.Module):
 
 
 class Scene(eqx.Module):
-    r"""A body in motion: mesh + material + density + initial state (+ loads).
+    r"""A body in motion: mesh, material, density, initial state, loads and supports.
 
     **Arguments:**
+
     - `mesh`: a `jaxvisco.Mesh`.
     - `material`: a `ReeseGovindjee` material, or a plain energy function $\psi(C)$
       (then the scene is elastic and carries no internal variable); or one material per
@@ -51,7 +53,7 @@ class Scene(eqx.Module):
       A plain function of t is traced by JAX: write it with `jax.numpy`
       (`jnp.where(t < 3.0, 1.0, 0.0)`, not a Python `if`).
     - `fixed`: Dirichlet conditions: a boolean mask (n_nodes, dim) of position components
-      held at their initial values (default: none; free motion).
+      held at their initial values (default: none; free motion); `clamp` builds one.
     - `prescribed`: motion of the held components in time, pairs `(displacement, time)`
       like `loads`: held components follow $x_0 + \sum_i g_i(t) u_i$ (`displacement`
       $u_i$ (n_nodes, dim), zero where not held). Start them at rest ($g_i'(0) = 0$, e.g.
@@ -59,6 +61,34 @@ class Scene(eqx.Module):
       of the reactions is counted in the external work, so the energy balance stays exact.
     - `mass`: `"consistent"` (default) or `"lumped"` (HRZ diagonal scaling).
     - `quadrature_order`: spatial quadrature order (default: the element's full rule).
+
+    Every array is a leaf of the scene, so `jax.grad` of a run can differentiate with
+    respect to it (material parameters, density, initial positions and velocities,
+    loads).
+
+    **Raises:**
+
+    `ValueError` for arrays of the wrong shape, non-finite or non-positive values,
+    inverted cells, prescribed motion of components that are not held, or a material
+    table that does not give every cell one material (each message names the value);
+    `RuntimeError` when JAX runs in float32.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    import jaxvisco as jv
+
+    mesh = jv.rectangle(8, 2, lx=4.0, ly=1.0)
+    nh = jv.NeoHooke(lam=300.0, mu=75.0)
+    material = jv.ReeseGovindjee(nh, nh, eta_dev=50.0)
+    tip = np.zeros((mesh.n_nodes, 2))
+    tip[jv.nodes_in(mesh, x=4.0)] = [0.0, -0.5]
+    scene = jv.Scene(mesh, material, density=1.0, fixed=jv.clamp(mesh, jv.nodes_in(mesh, x=0.0)),
+                     loads=[(tip, jv.time_functions.Step(at=1.0, before=1.0, after=0.0))])
+    ```
     """
 
     mesh: eqx.Module
@@ -140,23 +170,25 @@ class Scene(eqx.Module):
 
     @classmethod
     def from_file(cls, path) -> "Scene":
-        """The scene a TOML scene file describes (`jaxvisco.read_scene_file` reads the
-        rest: integrator, steps, output)."""
+        """The scene a TOML scene file describes (`read_scene_file` reads the rest too:
+        integrator, steps, output)."""
         from ._scenefile._scenefile import scene_from_file
 
         return scene_from_file(path)
 
-    def mass(self):
-        """Total mass $\\int \\rho\\, dV$."""
+    def mass(self) -> jax.Array:
+        """The total mass $\\int \\rho\\, dV$."""
         rho = self.density if jnp.ndim(self.density) == 0 else self.density[:, None]
         return jnp.sum(rho * self.disc.JxW)
 
     @property
-    def dim(self):
+    def dim(self) -> int:
+        """The space dimension, 2 or 3."""
         return self.mesh.dim
 
     @property
-    def has_internal_variable(self):
+    def has_internal_variable(self) -> bool:
+        """Whether the material is viscous (the state carries `gamma`)."""
         return self.material.has_internal_variable
 
     def held_positions(self, t):
@@ -172,6 +204,7 @@ class Scene(eqx.Module):
                        (jnp.asarray(t, dtype=float),), (jnp.ones((), dtype=float),))[1]
 
     def initial_state(self) -> State:
+        """The `State` the scene starts from: positions, momenta $p_0 = M v_0$, `gamma`."""
         return State(self.x0, _initial_momenta(self.disc, self.v0, self.density), self.gamma0)
 
     @property
@@ -185,8 +218,8 @@ class Scene(eqx.Module):
 
     # -- diagnostics ---------------------------------------------------------------
     def velocity(self, p, rtol=1e-14):
-        """$v = M^{-1}p$ on the consistent mass (`_krylov.mass_solve`: conjugate gradients,
-        differentiable in both modes), max-norm relative accuracy `rtol`."""
+        """$v = M^{-1}p$ on the scene's mass matrix (conjugate gradients, differentiable in
+        both modes), max-norm relative accuracy `rtol`."""
         disc, rho = self.disc, self.density
         return mass_solve(lambda u: disc.mass_matvec(u, rho), disc.mass_diagonal(rho)[:, None], p, rtol)
 
@@ -206,7 +239,7 @@ class Scene(eqx.Module):
 
     def point_materials(self):
         """The material of every spatial quadrature point, flat (n_cells * nq) on the
-        leading axis like `_tangent`'s point maps; None for one material."""
+        leading axis like the tangent's point maps; None for one material."""
         mats = self.cell_materials()
         if mats is None:
             return None
@@ -216,7 +249,7 @@ class Scene(eqx.Module):
     def map_cells(self, fn, *args, per_pass=None):
         """`fn(material, *args_of_one_cell)` over the cells (leading axis of each of
         `args`, None passes through), each cell with its material; `per_pass`: at most
-        this many cells at a time (`_fem._passes`), None: all at once."""
+        this many cells at a time (in passes), None: all at once."""
         mats = self.cell_materials()
         if mats is None:
             dyn, one = None, lambda _, *a: fn(self.material, *a)
@@ -239,9 +272,8 @@ class Scene(eqx.Module):
         """`map_points` for fields given node-major, F (k+1, n_cells, nq, 3, 3) and G alike
         or None: `fn(material, F, G)` with F (k+1, 3, 3) at every spatial point, outputs
         (n_cells, nq, ...). The time-node axis stays outermost, so that the kernel's
-        per-node slices are contiguous blocks: 2D L-shape r4, eG(1), step residual
-        1.16-1.21 -> 1.01-1.08 ms with the point-major layout transposed per point
-        (session 35). Per-cell materials and meshes taken in passes go point-major."""
+        per-node slices are contiguous blocks (faster; measured on the internals page).
+        Per-cell materials and meshes taken in passes go point-major."""
         if self.cell_materials() is None and F.shape[1] <= _cells_per_pass(F.shape[2]):
             inner = jax.vmap(lambda f, g: fn(self.material, f, g), in_axes=1)
             return jax.vmap(inner, in_axes=1)(F, G)
@@ -269,8 +301,9 @@ class Scene(eqx.Module):
         return self.disc.force(mm(F, self.stress(x, gamma)))
 
     def diagnostics(self, state: State, velocity=None) -> dict:
-        """Kinetic and free energy, H, dissipation rate, linear and angular momentum.
-        `velocity`: $M^{-1}p$ where the caller has it already (default: solved here)."""
+        """The diagnostics of a `State`, as `Solution` holds them per frame: a dict with
+        `kinetic`, `free_energy`, `energy` (H), `dissipation_rate`, `linear_momentum` and
+        `angular_momentum`. `velocity`: $M^{-1}p$ where the caller has it already."""
         kin = self.kinetic_energy(state.p, velocity)
         free = self.free_energy(state.x, state.gamma)
         return dict(

@@ -147,7 +147,7 @@ class Sine(AbstractTimeFunction):
 TIME_FUNCTIONS = {"constant": Constant, "step": Step, "ramp": Ramp, "table": Table, "sine": Sine}
 
 
-def time_function_from_dict(spec, where=""):
+def time_function_from_dict(spec: dict | float, where: str = "") -> "AbstractTimeFunction":
     """Build a time function from a table such as ``{"type": "step", "at": 1.0,
     "before": 1.0, "after": 0.0}``: ``type`` is one of `TIME_FUNCTIONS`, the other keys
     are the constructor's keywords. A bare number is a `Constant`. `where` prefixes error

@@ -56,7 +56,7 @@ def _benchmark(name):
 def test_identities_hold_at_every_accepted_step(lshape, k):
     """Energy balance (<= 1e-9 H_0 per step), D_n >= 0 and both momenta (1e-10) at every
     accepted step, with steps that change and at least one rejection."""
-    sol = jv.simulate(lshape, jv.eG(k), t1=3.0, dt0=0.5, stepsize_controller=jv.PIDController(1e-4, 1e-4), solver=TIGHT)
+    sol = jv.simulate(lshape, jv.eG(k), t1=3.0, dt0=0.5, stepsize_controller=jv.PIDController(1e-4, 1e-4), root_finder=TIGHT)
     assert sol.status == "done"
     assert float(sol.t[-1]) == 3.0 and float(sol.step_t[-1]) == 3.0  # the last step ends at t1 exactly
     h = np.asarray(sol.step_h)
@@ -94,7 +94,7 @@ def _reference_at_check_points(scene, scheme, ref_scheme, state, v, t, h, m):
     ts = np.concatenate([t + h * (knots[i] + (knots[i + 1] - knots[i]) * np.arange(m) / m)
                          for i in range(len(sigma))] + [[t + h * sigma[-1]]])
     ref = jv.simulate(scene, ref_scheme, stepsize_controller=jv.StepTo(ts), saveat=jv.SaveAt(gamma=True),
-                      initial_state=state, initial_velocity=v, solver=TIGHT)
+                      initial_state=state, initial_velocity=v, root_finder=TIGHT)
     idx = m * np.arange(1, len(sigma) + 1)
     return np.asarray(ref.x)[idx], np.asarray(jv._fem._tensor.sym_to_vec(ref.gamma))[idx]
 
@@ -108,7 +108,7 @@ def test_estimate_matches_true_local_error(lshape):
     consecutive check points (its error is ~600 times smaller)."""
     # Capacity 96: the reference runs below (72 steps) get 96 by default, so all of them
     # and this one share one compiled program.
-    run = jv.simulate(lshape, jv.eG(1), t1=4.0, dt0=0.1, saveat=jv.SaveAt(gamma=True), solver=TIGHT, max_steps=96)
+    run = jv.simulate(lshape, jv.eG(1), t1=4.0, dt0=0.1, saveat=jv.SaveAt(gamma=True), root_finder=TIGHT, max_steps=96)
     for frame in (0, 30):
         state, t = run.state(frame), float(run.t[frame])
         v = lshape.velocity(state.p)
@@ -154,14 +154,14 @@ def test_dense_output(lshape):
     ts = np.linspace(0.0, 1.5, 16)
     rtol = 1e-4
     sol = jv.simulate(lshape, jv.eG(2), t1=1.5, stepsize_controller=jv.PIDController(rtol, rtol),
-                      saveat=jv.SaveAt(ts, gamma=True), solver=TIGHT)
+                      saveat=jv.SaveAt(ts, gamma=True), root_finder=TIGHT)
     assert sol.status == "done" and len(sol.t) == len(ts)
     np.testing.assert_array_equal(np.asarray(sol.t), ts)
     np.testing.assert_array_equal(np.asarray(sol.x[0]), np.asarray(lshape.x0))
     step_t = np.asarray(sol.step_t)
     inside = [i for i, t in enumerate(ts) if np.min(np.abs(step_t - t)) > 1e-3]
     assert len(inside) >= 10  # most requested times fall inside steps
-    ref = jv.simulate(lshape, jv.eG(2), t1=1.5, dt0=0.01, solver=TIGHT)
+    ref = jv.simulate(lshape, jv.eG(2), t1=1.5, dt0=0.01, root_finder=TIGHT)
     ref_t = np.asarray(ref.t)
     at = [int(np.argmin(np.abs(ref_t - t))) for t in ts]
     assert np.allclose(ref_t[at], ts, rtol=0, atol=1e-12)
@@ -195,7 +195,7 @@ def test_tolerance_proportionality(lshape, reference_t2, k):
     tols = np.array([1e-3, 1e-4, 1e-5, 1e-6])
     e_x, e_d = [], []
     for tol in tols:
-        sol = jv.simulate(lshape, jv.eG(k), t1=2.0, stepsize_controller=jv.PIDController(tol, tol), solver=TIGHT,
+        sol = jv.simulate(lshape, jv.eG(k), t1=2.0, stepsize_controller=jv.PIDController(tol, tol), root_finder=TIGHT,
                           max_steps=4096)
         assert sol.status == "done"
         run_x, run_d = reference_t2.errors(sol)
@@ -216,7 +216,7 @@ def test_a_tight_tolerance_starts_from_an_undeformed_body(lshape, k):
     h ~ 2e-9 (4096 steps short of t = 0.01). It is now at least
     `_estimate.GAMMA_ROUNDING_ULPS` units of rounding (measured: 167 and 31 steps to t =
     0.01, median h 6e-5 and 3e-4). Same program as test_tolerance_proportionality."""
-    sol = jv.simulate(lshape, jv.eG(k), t1=0.01, stepsize_controller=jv.PIDController(1e-10, 1e-10), solver=TIGHT,
+    sol = jv.simulate(lshape, jv.eG(k), t1=0.01, stepsize_controller=jv.PIDController(1e-10, 1e-10), root_finder=TIGHT,
                       max_steps=4096, throw=False)
     assert sol.status == "done", (sol.status, int(sol.n_steps))
     n = int(sol.n_steps)
@@ -234,16 +234,16 @@ def test_gradient_along_accepted_steps(lshape):
     steps (step sizes are constants of the derivative): jax.grad against central
     differences of the same fixed step sequence."""
     ctrl = jv.PIDController(1e-3, 1e-3)
-    base = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, solver=TIGHT)
+    base = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, root_finder=TIGHT)
     ts = np.concatenate([[0.0], np.asarray(base.step_t)])
 
     def loss(log_eta):
         sol = jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl,
-                          solver=TIGHT)
+                          root_finder=TIGHT)
         return sol.dissipated[-1]
 
     def fixed(log_eta):
-        sol = jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts), solver=TIGHT)
+        sol = jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts), root_finder=TIGHT)
         return float(sol.dissipated[-1])
 
     x0 = float(jnp.log(lshape.material.eta_dev))
@@ -264,18 +264,18 @@ def test_forward_derivative_along_accepted_steps(lshape):
     sequence (`StepTo`), in the dissipated energy at t = 1. The reverse-mode gradient of
     the same run is test_gradient_along_accepted_steps (slow)."""
     ctrl = jv.PIDController(1e-3, 1e-3)
-    base = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, solver=TIGHT)
+    base = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl, root_finder=TIGHT)
     n = int(base.n_steps)
     ts = np.concatenate([[0.0], np.asarray(base.step_t)])
     assert n >= 5 and len(np.unique(np.round(np.diff(ts), 12))) >= 3  # steps the controller chose, not one size
 
     def adaptive(log_eta):
         return jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), t1=1.0, dt0=0.1, stepsize_controller=ctrl,
-                           solver=TIGHT).dissipated[-1]
+                           root_finder=TIGHT).dissipated[-1]
 
     def fixed(log_eta):
         return float(jv.simulate(_with_eta_dev(lshape, log_eta), jv.eG(1), stepsize_controller=jv.StepTo(ts),
-                                 solver=TIGHT).dissipated[-1])
+                                 root_finder=TIGHT).dissipated[-1])
 
     x0 = float(jnp.log(lshape.material.eta_dev))
     value, tangent = jax.jvp(adaptive, (jnp.asarray(x0),), (jnp.asarray(1.0),))

@@ -33,7 +33,7 @@ from jaxvisco._time_element._step import make_context, predictor
 
 
 def _scene(dim, refinement, element=None, held=False):
-    mesh = jv.lshape_mesh(dim=dim, refinement=refinement, element=element)
+    mesh = jv.lshape_mesh(dim=dim, refinement=refinement, cell_type=element)
     nh = jv.NeoHooke(lam=30000.0, mu=7500.0)
     material = jv.ReeseGovindjee(nh, nh, eta_dev=50000.0, eta_vol=10000.0)
     X = np.asarray(mesh.points)
@@ -222,7 +222,7 @@ def test_multigrid_path_matches_direct(dim, r, element, held, k, monkeypatch):
     ends = {}
     for pc in ("lu", "amg"):
         solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=pc, refresh_after=30))
-        sol = jv.simulate(scene, jv.eG(k), t1=steps * h, dt0=h, solver=solver, saveat=jv.SaveAt(every=steps))
+        sol = jv.simulate(scene, jv.eG(k), t1=steps * h, dt0=h, root_finder=solver, saveat=jv.SaveAt(every=steps))
         assert sol.status == "done", sol.status
         ends[pc] = sol
     hier = _amg.hierarchy(scene.disc.cells, k, scene.disc.n_nodes, dim, scene.fixed)
@@ -260,7 +260,7 @@ def test_chord_iterations_solve_the_block_to_their_tolerance(monkeypatch):
         # double: float32 cycles cannot solve the block to 1e-10 (`multigrid_precision`)
         solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner=pc, refresh_after=30,
                                                         multigrid_precision="double"))
-        sol = jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, solver=solver, saveat=jv.SaveAt(every=steps))
+        sol = jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, root_finder=solver, saveat=jv.SaveAt(every=steps))
         assert sol.status == "done", sol.status
         return sol
 
@@ -292,7 +292,7 @@ def test_gradient_on_the_multigrid_path_matches_finite_differences(monkeypatch):
     def loss(theta):
         s = eqx.tree_at(lambda s: (s.material.eta_dev, s.material.eta_vol, s.v0), scene,
                         (jnp.exp(theta[0]), jnp.exp(theta[1]), theta[2] * scene.v0))
-        sol = jv.simulate(s, jv.eG(1), t1=0.4, dt0=0.1, solver=solver)
+        sol = jv.simulate(s, jv.eG(1), t1=0.4, dt0=0.1, root_finder=solver)
         return sol.dissipated[-1] + sol.free_energy[-1] + 1e-3 * jnp.mean((sol.x[-1] - scene.x0) ** 2)
 
     theta = jnp.array([jnp.log(scene.material.eta_dev), jnp.log(scene.material.eta_vol), 1.0])
@@ -362,7 +362,7 @@ def test_restarted_gmres_on_the_multigrid_path(monkeypatch):
     for name, lin in [("lu", jv.GMRES(preconditioner="lu", refresh_after=30)),
                       ("amg", jv.GMRES(preconditioner="amg", refresh_after=30)),
                       ("amg2", jv.GMRES(preconditioner="amg", refresh_after=30, restart=2))]:
-        sol = jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, solver=jv.NewtonKrylov(linear_solver=lin, chord=0),
+        sol = jv.simulate(scene, jv.eG(1), t1=steps * h, dt0=h, root_finder=jv.NewtonKrylov(linear_solver=lin, chord=0),
                           saveat=jv.SaveAt(every=steps))
         assert sol.status == "done", sol.status
         ends[name] = sol
@@ -392,7 +392,7 @@ def test_time_loop_takes_the_hierarchy_as_arguments(monkeypatch):
     scene = _scene(3, 1, "hex8", held=True)
     solver = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner="amg"))
     run, captured = capture_time_loop(monkeypatch)
-    sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, solver=solver)
+    sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, root_finder=solver)
     args, kwargs = captured["args"], captured["kwargs"]
     multigrid = args[-1]
     hier = _amg.of_scene(1, scene)

@@ -34,7 +34,7 @@ STEPS = {1: (0.05, 0.025, 0.0125), 2: (0.2, 0.1, 0.05), 3: (0.4, 0.2, 0.1)}
 def reference():
     scene = _soft_scene()
     sol = jv.simulate(scene, jv.cG(3), t1=T, dt0=0.0125, saveat=jv.SaveAt(gamma=True), max_steps=64,
-                      solver=SOLVER)
+                      root_finder=SOLVER)
     return scene, np.asarray(sol.x[-1]), np.asarray(sol.gamma[-1])
 
 
@@ -42,7 +42,7 @@ def _orders(scene, scheme, ref_x, ref_g):
     ex, eg = [], []
     for h in STEPS[scheme.k]:
         sol = jv.simulate(scene, scheme, t1=T, dt0=h, saveat=jv.SaveAt(gamma=True), max_steps=64,
-                          solver=SOLVER)
+                          root_finder=SOLVER)
         ex.append(np.max(np.abs(np.asarray(sol.x[-1]) - ref_x)))
         eg.append(np.max(np.abs(np.asarray(sol.gamma[-1]) - ref_g)))
     ex, eg = np.array(ex), np.array(eg)

@@ -36,7 +36,7 @@ def test_clamped_body_eG_balance_and_held_nodes(mass):
 
 def test_lumped_mass_is_positive_and_exact_in_total():
     for element in ("quad4", "quad8", "tri6", "quad9"):
-        mesh = jv.lshape_mesh(2, 1, element=element)
+        mesh = jv.lshape_mesh(2, 1, cell_type=element)
         scene = jv.Scene(mesh, jv.NeoHooke(lam=1.0, mu=1.0), 2.0, mass="lumped")
         m = np.asarray(scene.disc.mass_diagonal(scene.density))
         assert np.all(m > 0), element

@@ -33,3 +33,43 @@ def test_lshape_paper_quick(tmp_path):
     t, H, status = res[("eG(1)", "large")]
     assert status == "done" and np.all(np.diff(H) <= 1e-9 * H[0])
     assert (tmp_path / "energy.png").exists()
+
+
+# ------------------------------------------------------------------ the gallery
+# The examples whose pictures the documentation's gallery shows (docs/make_gallery.py):
+# each runs in its short mode and must draw its picture.
+def _gallery():
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(__file__), os.pardir, "docs", "make_gallery.py")
+    spec = importlib.util.spec_from_file_location("make_gallery", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+GALLERY_NAMES = sorted(_gallery().GALLERY)
+
+
+def test_gallery_scripts_draw_their_pictures_in_short_mode(tmp_path):
+    """Each gallery script, short, draws its picture (lshape_paper's short run is
+    `test_lshape_paper_quick`'s, which checks its picture)."""
+    gallery = _gallery()
+    assert gallery.GALLERY["lshape_paper"][1] == ["--quick", "--out", "{dir}"]
+    for name in GALLERY_NAMES:
+        if name == "lshape_paper":
+            continue
+        folder = tmp_path / name
+        folder.mkdir()
+        _, png = gallery.draw(name, True, str(folder))
+        assert os.path.getsize(png) > 10_000, (name, png)
+
+
+def test_clamped_beam_from_its_scene_file():
+    """The gallery's clamped beam (examples/scenes/beam2d.toml through read_scene_file):
+    the load bends the tip down, and eG keeps H + D - H0 = W to the Newton tolerance."""
+    sol, deflection = load("clamped_beam").main(["--quick"])
+    H, D, W = (np.asarray(a) for a in (sol.energy, sol.dissipated, sol.external_work))
+    assert sol.status == "done" and len(sol.step_t) == 10
+    assert deflection[0] == 0.0 and deflection[-1] < -0.1
+    assert np.max(np.abs(H - H[0] + D - W)) <= 1e-9 * np.max(W)

@@ -106,7 +106,7 @@ def test_moving_support_eG_energy_balance_is_exact(k):
     f = np.zeros(X.shape)
     f[X[:, 0] == 4.0, 0] = 0.2
     scene, _, _ = _beam(prescribed=[(u, shake)], loads=[(f, tf.Ramp(0.0, 1.0))])
-    sol = jv.simulate(scene, jv.eG(k), t1=2.0, dt0=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    sol = jv.simulate(scene, jv.eG(k), t1=2.0, dt0=0.25, root_finder=jv.NewtonKrylov(rtol=1e-11))
     x, t = np.asarray(sol.x), np.asarray(sol.t)
     target = X[None] + (0.5 - 0.5 * np.cos(np.pi * t))[:, None, None] * u[None]
     assert np.max(np.abs(x[:, fixed] - target[:, fixed])) <= 1e-12
@@ -143,7 +143,7 @@ def test_materials_per_part_equal_one_material_and_keep_the_balance():
     energy balance, D >= 0 and the momenta still hold exactly (the tangent stays exact:
     few iterations)."""
     mat = _viscous(30.0, 7.5, 10.0, 50.0)
-    run = dict(t1=1.0, dt0=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    run = dict(t1=1.0, dt0=0.25, root_finder=jv.NewtonKrylov(rtol=1e-11))
     same, mesh = _two_part_scene(mat, mat)
     one = jv.Scene(mesh, mat, 8.93, velocities=same.v0)
     assert same.cell_material is not None  # the per-cell path, with equal parameters
@@ -207,7 +207,7 @@ def test_traction_gives_the_exact_impulse_and_eG_balances_its_work():
     t0 = np.array([0.3, -0.1])
     scene = jv.Scene(mesh, _viscous(30.0, 7.5, 10.0, 50.0), 8.93,
                      loads=[(jv.traction_load(mesh, right, t0), tf.Ramp(0.0, 1.0))])
-    sol = jv.simulate(scene, jv.eG(1), t1=2.0, dt0=0.25, solver=jv.NewtonKrylov(rtol=1e-11))
+    sol = jv.simulate(scene, jv.eG(1), t1=2.0, dt0=0.25, root_finder=jv.NewtonKrylov(rtol=1e-11))
     t = np.asarray(sol.t)
     impulse = np.where(t < 1.0, 0.5 * t**2, 0.5 + (t - 1.0))[:, None] * (2.0 * t0)[None]
     L = np.asarray(sol.linear_momentum)

@@ -82,7 +82,7 @@ def test_radau_agrees_with_eG3(ode):
     t_end = 0.3
     ref = solve_ivp(ode.fun, (0.0, t_end), ode.y0, method="Radau", jac=ode.jac, rtol=1e-10, atol=1e-10)
     assert ref.success
-    sol = jv.simulate(ode.scene, jv.eG(3), t1=t_end, dt0=0.01, solver=jv.NewtonKrylov(rtol=1e-12))
+    sol = jv.simulate(ode.scene, jv.eG(3), t1=t_end, dt0=0.01, root_finder=jv.NewtonKrylov(rtol=1e-12))
     end = ode.unpack(ref.y[:, -1])
     x, p = np.asarray(sol.x[-1]), np.asarray(sol.p[-1])
     assert np.linalg.norm(x - end.x) / np.linalg.norm(end.x) < 2e-8  # 7e-9 measured (order ~6)

@@ -381,7 +381,7 @@ def test_cli_resume_errors(full_and_split, capsys):
     assert main(["run", "--resume", str(d / "split.h5"), "--quiet"]) == 2
     assert "already reaches t = 1.2" in capsys.readouterr().err
     assert main(["run", "--resume", str(d / "split.h5"), "--dt", "0.5"]) == 2
-    assert "only --t-end and --quiet may be given, got --dt" in capsys.readouterr().err
+    assert "only --t1 and --quiet may be given, got --dt" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------ interruption

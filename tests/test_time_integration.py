@@ -41,9 +41,9 @@ def test_eG_energy_balance_and_momenta(lshape, k):
     # test_dense_output), 32 for eG(3) (the 30-step run of test_ode).
     cap = {1: 128, 2: 192, 3: 32}[k]
     runs = [jv.simulate(lshape, jv.eG(k), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
-                        solver=TIGHT, max_steps=cap),
+                        root_finder=TIGHT, max_steps=cap),
             jv.simulate(lshape, jv.eG(k), t1=12.0, stepsize_controller=jv.Schedule([(4.0, 2.0), (12.0, 4.0)]),
-                        solver=TIGHT, max_steps=cap)]
+                        root_finder=TIGHT, max_steps=cap)]
     for sol, n in zip(runs, (6, 5)):
         assert sol.status == "done"
         H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
@@ -62,7 +62,7 @@ def test_eG_energy_balance_and_momenta(lshape, k):
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("k", [1, 2, 3])
 def test_cG_conserves_momenta(lshape, k):
-    sol = jv.simulate(lshape, jv.cG(k), t1=0.5, dt0=0.1, solver=TIGHT)
+    sol = jv.simulate(lshape, jv.cG(k), t1=0.5, dt0=0.1, root_finder=TIGHT)
     dP, dL = _momentum_drift(sol)
     assert dP <= 1e-10 and dL <= 1e-10, (dP, dL)
     # cG is not energy consistent: its balance error is not at rounding level.
@@ -74,7 +74,7 @@ def test_cG_conserves_momenta(lshape, k):
 def test_elastic_limit_eG_conserves_energy():
     scene = jv.scenes.lshape(dim=2, refinement=1, viscous=False)
     assert scene.initial_state().gamma is None  # nothing stored for Γ
-    sol = jv.simulate(scene, jv.eG(1), t1=3.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (3.3, 1.0)]), solver=TIGHT)
+    sol = jv.simulate(scene, jv.eG(1), t1=3.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (3.3, 1.0)]), root_finder=TIGHT)
     H = np.asarray(sol.energy)
     assert sol.gamma is None
     assert np.max(np.abs(H - H[0])) <= 1e-9 * H[0]
@@ -92,7 +92,7 @@ def test_prestretched_body_relaxes_to_equilibrium_under_eG():
     mat = jv.ReeseGovindjee(nh, nh, eta_dev=10.0, eta_vol=50.0)
     x0 = mesh.points * jnp.array([1.1, 0.95])
     scene = jv.Scene(mesh, mat, 8.93, positions=x0)
-    sol = jv.simulate(scene, jv.eG(1), t1=500.0, dt0=1.0, event=jv.Equilibrium(1e-4), solver=TIGHT)
+    sol = jv.simulate(scene, jv.eG(1), t1=500.0, dt0=1.0, event=jv.Equilibrium(1e-4), root_finder=TIGHT)
     H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
     assert sol.status == "equilibrium", (sol.status, H[-1])
     assert np.all(np.diff(H) <= 1e-12 * H[0])
@@ -104,7 +104,7 @@ def test_prestretched_body_relaxes_to_equilibrium_under_eG():
 
 @pytest.mark.timeout(300)
 def test_newmark_runs_and_conserves_linear_momentum(lshape):
-    sol = jv.simulate(lshape, jv.Newmark(), t1=0.5, dt0=0.1, solver=TIGHT)
+    sol = jv.simulate(lshape, jv.Newmark(), t1=0.5, dt0=0.1, root_finder=TIGHT)
     dP, _ = _momentum_drift(sol)
     assert sol.status == "done" and dP <= 1e-10
 
@@ -117,13 +117,13 @@ def test_newmark_runs_and_conserves_linear_momentum(lshape):
 # compiled programs.
 LOOP_REFERENCE_RUNS = {
     "eG1": lambda s: jv.simulate(s, jv.eG(1), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
-                                 solver=TIGHT, max_steps=128),
+                                 root_finder=TIGHT, max_steps=128),
     "eG2": lambda s: jv.simulate(s, jv.eG(2), t1=2.3, stepsize_controller=jv.Schedule([(0.3, 0.1), (2.3, 1.0)]),
-                                 solver=TIGHT, max_steps=192),
-    "cG1": lambda s: jv.simulate(s, jv.cG(1), t1=0.5, dt0=0.1, solver=TIGHT),
-    "cG2": lambda s: jv.simulate(s, jv.cG(2), t1=0.5, dt0=0.1, solver=TIGHT),
-    "Midpoint": lambda s: jv.simulate(s, jv.Midpoint(), t1=0.5, dt0=0.1, solver=TIGHT),
-    "Newmark": lambda s: jv.simulate(s, jv.Newmark(), t1=0.5, dt0=0.1, solver=TIGHT),
+                                 root_finder=TIGHT, max_steps=192),
+    "cG1": lambda s: jv.simulate(s, jv.cG(1), t1=0.5, dt0=0.1, root_finder=TIGHT),
+    "cG2": lambda s: jv.simulate(s, jv.cG(2), t1=0.5, dt0=0.1, root_finder=TIGHT),
+    "Midpoint": lambda s: jv.simulate(s, jv.Midpoint(), t1=0.5, dt0=0.1, root_finder=TIGHT),
+    "Newmark": lambda s: jv.simulate(s, jv.Newmark(), t1=0.5, dt0=0.1, root_finder=TIGHT),
 }
 
 
@@ -159,7 +159,7 @@ def test_eg_residual_has_no_rounding_floor_above_1e_13(lshape):
     squared strain increment: this run's residual stalled at 6e-12 - 2.5e-11 (now
     <= 5.2e-14), and at the default rtol 1e-10 the 2D L-shape at refinement 4 ended
     every step with Newton iterations against that floor."""
-    sol = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, solver=jv.NewtonKrylov(rtol=1e-13))
+    sol = jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=0.1, root_finder=jv.NewtonKrylov(rtol=1e-13))
     r = np.asarray(sol.residual)
     assert sol.status == "done" and len(r) == 10  # one per step
     assert np.all(r <= 1e-13), r
@@ -219,7 +219,7 @@ def test_eG_with_more_time_points_keeps_the_balance_at_large_steps():
     eG(2)): H_{n+1} - H_n = -D_n with D_n > 0 at every step, linear momentum kept; its
     angular momentum is not conserved (the test functions interpolate the trajectory at
     the 2 Gauss points only): measured up to 3.0e-4 of it per step."""
-    sol = jv.simulate(jv.scenes.lshape(dim=2, refinement=1), jv.eG(2, quadrature=4), t1=10.0, dt0=1.0, solver=TIGHT)
+    sol = jv.simulate(jv.scenes.lshape(dim=2, refinement=1), jv.eG(2, quadrature=4), t1=10.0, dt0=1.0, root_finder=TIGHT)
     assert sol.status == "done" and int(np.sum(sol.rejections)) == 0
     H, D = np.asarray(sol.energy), np.asarray(sol.dissipated)
     step_D = np.diff(D)

@@ -13,13 +13,19 @@ traction, pressure or coordinates are traced (e.g. differentiated).
 """
 
 import functools
+from typing import TYPE_CHECKING, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jax.typing import ArrayLike
+
 from .._validation import _concrete
 from ._elements import element_type
+
+if TYPE_CHECKING:
+    from ._mesh import Mesh
 
 _FACET_TYPE = {
     "tri3": "line2", "quad4": "line2", "tri6": "line3", "quad8": "line3",
@@ -118,7 +124,7 @@ def _boundary(mesh):
     return facets[on], on // n_local, on % n_local
 
 
-def boundary_facets(mesh) -> np.ndarray:
+def boundary_facets(mesh: "Mesh") -> np.ndarray:
     """The facets that belong to exactly one cell, oriented outward.
 
     **Arguments:**
@@ -165,7 +171,7 @@ def match_boundary(mesh, facets) -> tuple[np.ndarray, np.ndarray]:
     return boundary[np.unique(hit[found])], found
 
 
-def nodes_where(mesh, predicate) -> np.ndarray:
+def nodes_where(mesh: "Mesh", predicate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     """Sorted indices of the nodes whose coordinates satisfy `predicate`.
 
     **Arguments:**
@@ -216,7 +222,7 @@ def _check_index_array(name, value, n, width=None):
     return a
 
 
-def facets_from_nodes(mesh, nodes) -> np.ndarray:
+def facets_from_nodes(mesh: "Mesh", nodes: ArrayLike) -> np.ndarray:
     """The boundary facets whose nodes all lie in `nodes`.
 
     **Arguments:**
@@ -311,7 +317,7 @@ def _assemble(mesh, facets, fe):
     return jnp.zeros((mesh.n_nodes, mesh.dim)).at[facets].add(fe)
 
 
-def facet_area(mesh, facets) -> float:
+def facet_area(mesh: "Mesh", facets: ArrayLike) -> float:
     """Total reference area of `facets` (length of edges in 2D).
 
     **Arguments:**
@@ -327,7 +333,7 @@ def facet_area(mesh, facets) -> float:
     return float(np.sum(np.linalg.norm(np.asarray(n), axis=-1)))
 
 
-def traction_load(mesh, facets, traction) -> jax.Array:
+def traction_load(mesh: "Mesh", facets: ArrayLike, traction: ArrayLike) -> jax.Array:
     r"""Consistent nodal forces of a dead traction: $f_a = \int_{\Gamma_0} N_a t_0\,dA$.
 
     **Arguments:**
@@ -349,7 +355,7 @@ def traction_load(mesh, facets, traction) -> jax.Array:
     return _assemble(mesh, facets, fe)
 
 
-def pressure_load(mesh, facets, pressure) -> jax.Array:
+def pressure_load(mesh: "Mesh", facets: ArrayLike, pressure: ArrayLike) -> jax.Array:
     r"""Consistent nodal forces of a dead pressure: $f_a = -p \int_{\Gamma_0} N_a n_0\,dA$.
 
     `p > 0` pushes into the body when the facets are outward oriented (as

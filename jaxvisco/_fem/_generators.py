@@ -8,6 +8,8 @@ shared corner, mid-edge and face nodes are never duplicated and no node is unuse
 """
 
 import itertools
+import warnings
+from typing import Sequence
 
 import numpy as np
 
@@ -85,7 +87,8 @@ def _grid(counts):
     return np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=-1)
 
 
-def rectangle(nx, ny, lx=1.0, ly=1.0, cell_type="quad4", origin=(0.0, 0.0)) -> Mesh:
+def rectangle(nx: int, ny: int, lx: float = 1.0, ly: float = 1.0, cell_type: str = "quad4",
+              origin: Sequence[float] = (0.0, 0.0)) -> Mesh:
     """Structured mesh of the rectangle `origin + [0, lx] x [0, ly]`.
 
     **Arguments:**
@@ -105,7 +108,8 @@ def rectangle(nx, ny, lx=1.0, ly=1.0, cell_type="quad4", origin=(0.0, 0.0)) -> M
     return _from_lattice(_grid(counts), cell_type, spacing, _origin(origin, 2))
 
 
-def box(nx, ny, nz, lx=1.0, ly=1.0, lz=1.0, cell_type="hex8", origin=(0.0, 0.0, 0.0)):
+def box(nx: int, ny: int, nz: int, lx: float = 1.0, ly: float = 1.0, lz: float = 1.0, cell_type: str = "hex8",
+        origin: Sequence[float] = (0.0, 0.0, 0.0)) -> Mesh:
     """Structured mesh of the box `origin + [0, lx] x [0, ly] x [0, lz]`.
 
     **Arguments:**
@@ -133,7 +137,8 @@ def _origin(origin, dim):
     return o
 
 
-def lshape_mesh(dim: int = 2, refinement: int = 1, element: str | None = None) -> Mesh:
+def lshape_mesh(dim: int = 2, refinement: int = 1, cell_type: str | None = None, *,
+                element: str | None = None) -> Mesh:
     """Simo & Tarnow's L-shaped block.
 
     2D (plane strain): `[0, 6] x [0, 3]  U  [0, 3] x [0, 10]`, area 39; 3D: the same
@@ -145,8 +150,9 @@ def lshape_mesh(dim: int = 2, refinement: int = 1, element: str | None = None) -
 
     - `dim`: 2 or 3.
     - `refinement`: lattice cells per unit length (>= 1).
-    - `element`: `"quad4"` (2D default), `"tri3"`, `"tri6"`, `"quad8"`, `"quad9"`;
+    - `cell_type`: `"quad4"` (2D default), `"tri3"`, `"tri6"`, `"quad8"`, `"quad9"`;
       `"hex8"` (3D default), `"tet4"`, `"tet10"`, `"hex20"`, `"hex27"`.
+    - `element`: deprecated name of `cell_type`.
 
     **Returns:**
 
@@ -155,8 +161,12 @@ def lshape_mesh(dim: int = 2, refinement: int = 1, element: str | None = None) -
     if dim not in (2, 3) or isinstance(dim, bool):
         raise ValueError(f"dim must be 2 or 3, got {dim!r}.")
     r = _check_count(refinement, "refinement")
-    if element is None:
-        element = "quad4" if dim == 2 else "hex8"
+    if element is not None:
+        if cell_type is not None:
+            raise TypeError("lshape_mesh(): give cell_type or the deprecated element, not both.")
+        warnings.warn("lshape_mesh(): element= is deprecated, use cell_type=.", DeprecationWarning, stacklevel=2)
+        cell_type = element
+    element = cell_type if cell_type is not None else "quad4" if dim == 2 else "hex8"
     lo = _grid((6 * r, 10 * r))
     keep = (lo[:, 0] < 3 * r) | (lo[:, 1] < 3 * r)
     lo = lo[keep]

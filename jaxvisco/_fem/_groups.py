@@ -234,7 +234,7 @@ def _abaqus_surfaces(path, m, offsets, mesh):
     return out, problems
 
 
-def read_mesh(path, cell_type: str | None = None) -> tuple[Mesh, MeshGroups]:
+def read_mesh(path: str | os.PathLike, cell_type: str | None = None) -> tuple[Mesh, MeshGroups]:
     """Read a mesh file and its named groups.
 
     **Arguments:**

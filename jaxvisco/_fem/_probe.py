@@ -38,9 +38,12 @@ _CHUNK = 1 << 16  # (point, element) pairs inverted at once: bounds the host mem
 
 
 class Probe(eqx.Module):
-    """Material points of a mesh, located once, read in every frame.
+    """Material points of a mesh (markers, extensometers, DIC grids), located once on the
+    host, read differentiably in every frame: positions, displacements, deformation
+    gradients and Green strains, through the shape functions of the element holding each
+    point (curved quadratic elements included).
 
-    **Fields:**
+    **Attributes:**
 
     - `points`: the reference coordinates asked for, `(m, dim)`.
     - `element`: index of the element holding each point, `(m,)`.
@@ -57,11 +60,16 @@ class Probe(eqx.Module):
     **Example:**
 
     ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import jaxvisco as jv
+
     mesh = jv.box(4, 2, 2, lx=2.0)
     probe = jv.Probe(mesh, [[0.5, 0.5, 0.5], [1.5, 0.5, 0.5]])
-    x = solution.x                                  # (n_frames, n_nodes, 3)
-    gauge = probe.positions(x)                      # (n_frames, 2, 3)
-    elongation = jnp.linalg.norm(gauge[:, 1] - gauge[:, 0], axis=-1) - 1.0
+    x = 1.1 * mesh.points[None]                     # a frame stretched by 10 %
+    gauge = probe.positions(x)                      # (1, 2, 3)
+    print(jnp.linalg.norm(gauge[:, 1] - gauge[:, 0], axis=-1) - 1.0)   # 0.1
     ```
     """
 

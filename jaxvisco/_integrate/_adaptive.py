@@ -132,7 +132,8 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
 
         status = jnp.where(failed, FAILED, RUNNING)
         if eq_tol is not None:
-            status = jnp.where(accept & at_equilibrium(scene, new, D, eq_tol, H0), EQUILIBRIUM, status)
+            status = jnp.where(accept & at_equilibrium(scene, new, D, eq_tol, H0, dissipated, work), EQUILIBRIUM,
+                               status)
         status = jnp.where(accept & (status == RUNNING) & last, DONE, status)
         status = jnp.where(accept & (status == RUNNING) & (i + 1 >= capacity), MAX_STEPS, status)
         save = ((i + 1) % save_every == 0) | (status != RUNNING)

@@ -7,7 +7,8 @@ import numpy as np
 
 
 class AbstractAdjoint(eqx.Module):
-    """How `jax.grad`/`jax.jvp` of `simulate` are computed."""
+    """How `jax.grad` and `jax.jvp` of `simulate` are computed: the base of
+    `RecursiveCheckpointAdjoint`, the only one."""
 
 
 def _count(name, value, what):
@@ -26,6 +27,7 @@ class RecursiveCheckpointAdjoint(AbstractAdjoint):
     derivative, as in diffrax.
 
     **Arguments:**
+
     - `checkpoints`: None (default) stores every step while that fits `max_bytes`;
       beyond, the run stores its state at checkpoints and the derivative re-solves the
       steps between them (one more forward run of work). An integer: store that many
@@ -40,7 +42,21 @@ class RecursiveCheckpointAdjoint(AbstractAdjoint):
       an error that says which. True puts a host callback into the compiled derivative,
       which JAX's persistent compilation cache does not store.
     - `checkpoint_every`: deprecated (jaxvisco 0.2): frames per checkpointed segment;
-      use `checkpoints`.
+      use `checkpoints` (`DeprecationWarning`).
+
+    **Raises:**
+
+    `ValueError` for a count that is not a positive integer, or a `throw` that is not a
+    boolean.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    low_memory = jv.RecursiveCheckpointAdjoint(checkpoints=16)   # re-solve between 16 states
+    strict = jv.RecursiveCheckpointAdjoint(throw=True)           # raise instead of NaN
+    ```
     """
 
     checkpoints: int = eqx.field(static=True, default=None)

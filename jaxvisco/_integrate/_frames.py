@@ -15,9 +15,12 @@ diagnostics = eqx.filter_jit(Scene.diagnostics)
 
 
 def relative_kinetic_energy(scene: Scene, x, p):
-    """Kinetic energy relative to the best-fitting rigid motion (mass-weighted)."""
+    """Kinetic energy relative to the best-fitting rigid motion (mass-weighted); for a
+    body with held components, which cannot move rigidly, the whole kinetic energy."""
     v = scene.velocity(p)
     T = 0.5 * jnp.vdot(p, v)
+    if scene.fixed is not None:
+        return T
     c = jnp.mean(x, axis=0)
     r = x - c
     d = x.shape[-1]
@@ -35,10 +38,15 @@ def relative_kinetic_energy(scene: Scene, x, p):
     return T - 0.5 * jnp.dot(b, small_solve(G, b))
 
 
-def at_equilibrium(scene, state, D, eq_tol, H0):
-    """The early-stop test: kinetic energy relative to the rigid motion and the step's
-    dissipated energy both at most `eq_tol * H0`."""
-    return (relative_kinetic_energy(scene, state.x, state.p) <= eq_tol * H0) & (D <= eq_tol * H0)
+def at_equilibrium(scene, state, D, eq_tol, H0, dissipated, work):
+    """The early-stop test (`Equilibrium`): the kinetic energy relative to the rigid
+    motion and the step's dissipated energy `D` both at most `eq_tol` times the run's
+    energy scale, the largest of the initial energy `H0`, the external work done so far
+    (`work`, cumulative) and the energy dissipated so far (`dissipated`). A free body's
+    scale is H0 (its work is zero, its dissipation at most H0); a body loaded from rest
+    (H0 = 0) is measured against the work of its loads."""
+    scale = jnp.maximum(jnp.maximum(H0, jnp.abs(work)), dissipated)
+    return (relative_kinetic_energy(scene, state.x, state.p) <= eq_tol * scale) & (D <= eq_tol * scale)
 
 
 def frame_buffers(n_frames, t0, state0, diag0, save_gamma, reactions=False):

@@ -7,27 +7,41 @@ from ._schedule import checked_times
 
 
 class SaveAt(eqx.Module):
-    """Which frames `simulate` keeps (as diffrax's ``SaveAt``).
+    """Which frames `simulate` keeps (as diffrax's `SaveAt`).
+
+    The initial state and the last step are always kept, and the run's last predictor
+    velocity is always returned (`Solution.end_velocity`).
 
     **Arguments:**
-    - `ts`: times within ``[t0, t1]`` (non-decreasing; the sample times of data, say),
-      with fixed or error-controlled steps: a frame at a time inside a step is the step's
-      own time polynomial there (dense output: positions, momenta and internal variable;
-      no step is shortened to hit it); `dissipated` and `external_work` are exact at step
-      ends and linear in time within a step. Differentiated, a frame follows its step's
-      polynomial (where in the step it lies is a constant of the derivative, like the
-      step sizes).
-    - `every`: without `ts`, keep every `every`-th step (default 1; the initial state and
-      the last step are always kept). With fixed steps a step is a nominal step (its
-      halvings are inside it); with a `PIDController`, an accepted step.
+
+    - `ts`: times within `[t0, t1]` (non-decreasing; the sample times of data, say),
+      with fixed or error-controlled steps. A frame inside a step is that step's own
+      time polynomial there (dense output: positions, momenta and internal variable; no
+      step is shortened to hit it); `dissipated` and `external_work` are exact at step
+      ends and linear within a step. Differentiated, where in its step a frame lies is a
+      constant of the derivative, like the step sizes.
+    - `every`: without `ts`, keep every `every`-th step (default 1). With fixed steps a
+      step is a nominal step (its halvings are inside it); with a `PIDController`, an
+      accepted step.
     - `gamma`: also keep the internal variable at the frames (default False: it is the
-      largest field, and the run's end state needs it only for restarts).
+      largest field).
     - `reactions`: also keep the force the supports exert on every held component
       (`Solution.reaction`, `Solution.reaction_force`; default False); needs a scene with
       held components.
 
-    The run's last predictor velocity is always returned (`Solution.end_velocity`): a
-    restart that passes it as `initial_velocity` repeats the uninterrupted run.
+    **Raises:**
+
+    `ValueError` for `every` below 1, `ts` together with `every`, flags that are not
+    booleans, or times that are not finite and non-decreasing.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    every_tenth = jv.SaveAt(every=10, gamma=True)
+    at_times = jv.SaveAt(ts=[0.5, 1.0, 1.5], reactions=True)
+    ```
     """
 
     ts: np.ndarray = None

@@ -16,8 +16,7 @@ import numpy as np
 
 class AbstractStepSizeController(eqx.Module):
     """How `simulate` chooses its steps: `ConstantStepSize`, `Schedule`, `StepTo` (steps
-    fixed before the run, expanded here on the host) or `PIDController` (error-controlled,
-    `_stepsize`)."""
+    fixed before the run) or `PIDController` (error-controlled)."""
 
 
 class AbstractFixedSteps(AbstractStepSizeController):
@@ -40,9 +39,29 @@ class AbstractFixedSteps(AbstractStepSizeController):
 
 
 class ConstantStepSize(AbstractFixedSteps):
-    """Steps of the size `dt0` (the default): from `t0` to `t1` in equal steps, the last
-    ending at `t1` exactly (a run whose length is not a multiple of `dt0` takes equal
-    steps just below it)."""
+    """Steps of the size `dt0` (the default controller of `simulate`): from `t0` to `t1`
+    in equal steps, the last ending at `t1` exactly (a run whose length is not a
+    multiple of `dt0` takes equal steps just below it). A step whose Newton solve fails
+    is halved, at most `max_halvings` times, and the sub-steps grow back after
+    successes; a step that still fails ends the run (`status == "failed"`).
+
+    **Arguments:**
+
+    - `max_halvings`: how often a failed step may be halved (0 to 30; default 6, so the
+      smallest step tried is `dt0 / 64`).
+
+    **Raises:**
+
+    `ValueError` for `max_halvings` outside `[0, 30]`.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    ctrl = jv.ConstantStepSize(max_halvings=3)   # simulate(..., dt0=0.1, stepsize_controller=ctrl)
+    ```
+    """
 
     max_halvings: int = eqx.field(static=True, default=6)
 
@@ -58,12 +77,30 @@ class ConstantStepSize(AbstractFixedSteps):
 
 
 class Schedule(AbstractFixedSteps):
-    """Piecewise-constant steps: `pieces` ``[(t_until, dt), ...]`` in absolute times,
-    e.g. ``[(20.0, 0.1), (40.0, 0.5)]`` (pieces that end at or before `t0` are skipped;
-    the last must reach `t1`, or have ``t_until = inf`` to continue its step to any
-    `t1`). A piece whose length is not a multiple of its step is split into equal steps
-    no longer than the given one. `dt0` must be None; `t1` defaults to the last
-    piece's `t_until`."""
+    """Piecewise-constant steps, given in absolute times. Pass it with `dt0=None`; `t1`
+    defaults to the last piece's end. A piece whose length is not a multiple of its step
+    is split into equal steps no longer than the given one. Failed steps are halved as
+    with `ConstantStepSize`.
+
+    **Arguments:**
+
+    - `pieces`: `[(t_until, dt), ...]`, e.g. `[(20.0, 0.1), (40.0, 0.5)]`: steps of
+      `dt` up to `t_until`. Pieces that end at or before `t0` are skipped; the last must
+      reach `t1`, or have `t_until = inf` to continue its step to any `t1`.
+    - `max_halvings`: as in `ConstantStepSize` (6).
+
+    **Raises:**
+
+    `ValueError` for times that do not increase or steps that are not positive.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    ctrl = jv.Schedule([(20.0, 0.1), (60.0, 1.0)])   # the paper's step change at t = 20
+    ```
+    """
 
     pieces: tuple = eqx.field(static=True)
     max_halvings: int = eqx.field(static=True, default=6)
@@ -84,14 +121,30 @@ class Schedule(AbstractFixedSteps):
 
 
 class StepTo(AbstractFixedSteps):
-    """Steps that end exactly at the times `ts` (as diffrax's ``StepTo``).
+    """Steps that end exactly at given times (as diffrax's `StepTo`). Pass it with
+    `dt0=None`; `t0` and `t1` may be left out (they are `ts[0]` and `ts[-1]`).
 
-    `ts` holds the start time and then the end of every step, strictly increasing and
-    finite; step `i` runs from ``ts[i]`` to ``ts[i + 1]``. Pass it as
-    ``stepsize_controller`` with ``dt0=None`` (``t0 = ts[0]`` and ``t1 = ts[-1]``, or
-    those left out). ``StepTo.from_schedule(t0, t1, dt)`` expands a constant step or a
-    list of ``(t_until, dt)`` pieces, so that a run can be advanced in pieces
-    (``StepTo(steps.ts[i:j + 1])``) that repeat the whole run's steps exactly.
+    `StepTo.from_schedule(t0, t1, dt)` expands a constant step or a list of
+    `(t_until, dt)` pieces, so that a run can be advanced in parts
+    (`StepTo(steps.ts[i:j + 1])`) that repeat the whole run's steps exactly.
+
+    **Arguments:**
+
+    - `ts`: the start time and then the end of every step, strictly increasing and
+      finite; step `i` runs from `ts[i]` to `ts[i + 1]`.
+    - `max_halvings`: as in `ConstantStepSize` (6).
+
+    **Raises:**
+
+    `ValueError` for times that are not finite and strictly increasing.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    steps = jv.StepTo([0.0, 0.1, 0.3, 0.6])   # simulate(..., stepsize_controller=steps)
+    ```
     """
 
     ts: np.ndarray
@@ -105,10 +158,9 @@ class StepTo(AbstractFixedSteps):
         self._check_halvings()
 
     @classmethod
-    def from_schedule(cls, t0, t1, dt, max_halvings=6, t1_name="t1"):
-        """The exact step times of a constant step or a list of ``(t_until, dt)`` pieces
-        (see `step_times`; `t1_name`: what error messages call `t1`, e.g. a scene file's
-        ``t_end``)."""
+    def from_schedule(cls, t0, t1, dt, max_halvings=6, t1_name="t1") -> "StepTo":
+        """The steps of a constant step `dt` or a list of `(t_until, dt)` pieces from `t0`
+        to `t1`, with exact end times (`t1_name`: what error messages call `t1`)."""
         return cls(step_times(t0, t1, dt, t1_name)[1], max_halvings)
 
     def step_times(self, t0, t1, dt0):

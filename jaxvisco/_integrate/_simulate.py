@@ -8,6 +8,7 @@ The loop is differentiable (`jax.grad`, `jax.jvp`) through a replay of its accep
 sub-steps (`_differentiable`).
 """
 
+import warnings
 from typing import Optional
 
 import equinox as eqx
@@ -58,55 +59,82 @@ from ._solution import DONE, EQUILIBRIUM, FAILED, RUNNING, Solution, SolverError
 from ._stepsize import PIDController
 
 
-def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt0=None, *,
+def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] = None, t1: Optional[float] = None,
+             dt0: float | None = None, *,
              saveat: Optional[SaveAt] = None, stepsize_controller: Optional[AbstractStepSizeController] = None,
              event: Optional[AbstractEvent] = None, adjoint: Optional[RecursiveCheckpointAdjoint] = None,
-             solver: Optional[NewtonKrylov] = None, max_steps=None, throw=True,
-             initial_state: Optional[State] = None, initial_velocity=None, **deprecated) -> Solution:
-    """Integrate a scene in time (shaped like `diffrax.diffeqsolve`).
+             root_finder: Optional[NewtonKrylov] = None, max_steps: Optional[int] = None, throw: bool = True,
+             initial_state: Optional[State] = None, initial_velocity: Optional[jax.Array] = None,
+             solver: Optional[NewtonKrylov] = None,
+             **deprecated) -> Solution:
+    """Integrate a scene in time: the counterpart of `diffrax.diffeqsolve`.
+
+    The whole time loop is one compiled program; every call is differentiable
+    (`jax.grad`, `jax.jvp`, `jax.vmap`) with respect to anything the scene holds
+    (material parameters, density, initial positions and velocities, loads),
+    `initial_state` and `initial_velocity`.
 
     **Arguments:**
-    - `scene`; `integrator`: `cG(k)`, `eG(k)`, `Midpoint()` or `Newmark()`.
-    - `t0` (default 0), `t1`: the run's start and end; `dt0`: the step size of
-      `ConstantStepSize` (default controller), the first step tried by a `PIDController`
-      (None: a hundredth of the run), None for `Schedule` and `StepTo` (which give the
-      steps; with `StepTo`, `t0` and `t1` may be left out). Step end times are exact: a
-      piece's steps end at ``start + m * h``, never at an accumulated sum.
-    - `saveat`: `SaveAt(every=n, gamma=...)` (default: every step, no internal
-      variable), `SaveAt(ts)` (frames at given times, inside steps from their time
-      polynomial); `reactions=True` adds the supports' forces.
-    - `stepsize_controller`: `ConstantStepSize(max_halvings=6)` (default),
-      `Schedule([(t_until, dt), ...])`, `StepTo(ts)` or `PIDController(rtol, atol, ...)`.
-      Fixed steps are halved after a failed Newton solve (at most `max_halvings` times;
-      after successes they grow back dyadically); a `PIDController` retries smaller
-      steps down to its `dtmin`.
-    - `event`: `Equilibrium(tol)` ends the run once the body is at rest.
-    - `adjoint`: `RecursiveCheckpointAdjoint(checkpoints=..., max_bytes=...)` (the
-      default): how `jax.grad`/`jax.jvp` differentiate the run (a discrete adjoint along
-      its accepted steps, one linear solve per step; what it stores).
-    - `solver`: `NewtonKrylov(...)` (default `NewtonKrylov()`).
-    - `max_steps`: capacity of the compiled loop. Fixed steps: default the number of steps
-      rounded up to the next of 8, 12, 16, 24, 32, 48, ... (runs of 100 and 120 steps share
-      one program, in memory and in the persistent cache; called under a JAX
-      transformation, the number of steps). `PIDController`: accepted steps (default
-      4096); a run that needs more ends with ``status == "max_steps"``. A derivative
-      replays every slot of the capacity (and in reverse mode keeps each one's frame
-      values), so differentiate adaptive runs with a `max_steps` near their need.
-    - `throw`: raise `SolverError` on failure (else return with ``status == "failed"``).
-    - `initial_state`: start from this `State` instead of the scene's (restarts);
-      `initial_velocity`: the predictor's velocity for the first step (default: the
-      velocity of the initial momenta). A restart that passes the previous run's
-      `Solution.end_velocity` repeats the uninterrupted run exactly.
 
-    `jax.grad`, `jax.jvp` and `jax.vmap` of a plain call work, with respect to anything
-    the scene holds (material parameters, density, initial velocities and positions,
-    loads), `initial_state` and `initial_velocity`, with step halving and events on.
+    - `scene`: the `Scene` (what moves).
+    - `integrator`: the time element, `cG(k)`, `eG(k)`, `Midpoint()` or `Newmark()`.
+    - `t0`: the start time (default 0).
+    - `t1`: the end time.
+    - `dt0`: the step of `ConstantStepSize` (the default controller); with a
+      `PIDController` the first step tried (None: a hundredth of the run); None with
+      `Schedule` and `StepTo`, which give the steps themselves (with `StepTo`, `t0` and
+      `t1` may be left out). Step end times are exact: a piece's steps end at
+      `start + m * h`, never at an accumulated sum.
+    - `saveat`: what to keep, `SaveAt(every=n, gamma=...)` (default: every step, no
+      internal variable) or `SaveAt(ts)` (frames at given times, inside steps from their
+      time polynomial); `reactions=True` adds the supports' forces.
+    - `stepsize_controller`: `ConstantStepSize(max_halvings=6)` (default),
+      `Schedule([(t_until, dt), ...])`, `StepTo(ts)` or `PIDController(rtol, atol)`.
+      Fixed steps are halved after a failed Newton solve (at most `max_halvings` times)
+      and grow back after successes; a `PIDController` retries smaller steps down to its
+      `dtmin`.
+    - `event`: `Equilibrium(tol)` ends the run once the body is at rest.
+    - `adjoint`: how `jax.grad`/`jax.jvp` differentiate the run and what they store,
+      `RecursiveCheckpointAdjoint(checkpoints=..., max_bytes=...)` (the default).
+    - `root_finder`: the Newton solver of each time element, `NewtonKrylov(...)`
+      (default `NewtonKrylov()`).
+    - `max_steps`: the capacity of the compiled loop. Fixed steps: by default the number
+      of steps rounded up to the next of 8, 12, 16, 24, 32, 48, ..., so that runs of
+      nearby lengths share one compiled program. `PIDController`: accepted steps
+      (default 4096); a run that needs more ends with `status == "max_steps"`. A
+      derivative covers every slot of the capacity: differentiate adaptive runs with a
+      `max_steps` near their need.
+    - `throw`: raise `SolverError` when a step fails (default); with `False` return the
+      `Solution` up to the failure with `status == "failed"`.
+    - `initial_state`: start from this `State` instead of the scene's (restarts).
+    - `initial_velocity`: the predictor's velocity for the first step (default: the
+      velocity of the initial momenta). Passing a previous run's
+      `Solution.end_velocity` with its last state repeats the uninterrupted run.
+    - `solver`: deprecated name of `root_finder` (`DeprecationWarning`).
 
     The keywords of jaxvisco 0.1 (`t_end`, `dt`, `save_every`, `save_gamma`,
     `stop_at_equilibrium`, `max_halvings`, `differentiable`, `checkpoint_every`) are
-    accepted with a `DeprecationWarning` (see `_legacy`).
+    accepted with a `DeprecationWarning`; the changelog lists their replacements.
 
-    **Returns:** a `Solution` (trimmed to the saved frames when called outside `jit`).
+    **Returns:**
+
+    A `Solution`, trimmed to the saved frames when called outside `jax.jit`.
+
+    **Raises:**
+
+    `SolverError` when a step fails and `throw=True`; `TypeError` for an option of the
+    wrong kind; `ValueError` for inconsistent times or steps (named in the message).
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jaxvisco as jv
+
+    sol = jv.simulate(jv.scenes.lshape(), jv.eG(1), t0=0.0, t1=0.5, dt0=0.1)
+    print(sol.status, sol.energy[-1])
+    ```
     """
     if deprecated:
         t1, dt0, saveat, stepsize_controller, event, adjoint = translate(
@@ -122,7 +150,7 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
     event = _option("event", event, None, AbstractEvent, "Equilibrium(tol) or None")
     adjoint = _option("adjoint", adjoint, RecursiveCheckpointAdjoint(), RecursiveCheckpointAdjoint,
                       "RecursiveCheckpointAdjoint(checkpoints=..., max_bytes=...)")
-    solver = _option("solver", solver, NewtonKrylov(), NewtonKrylov, "NewtonKrylov(...)")
+    solver = _root_finder(root_finder, solver)
     _check_order(t0, t1)
     state0, v0, use_v0 = _initial(scene, initial_state, initial_velocity)
     eq_tol = None if event is None else device_array(float(event.tol))
@@ -145,6 +173,18 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0=None, t1=None, dt
                multigrid_arguments(integrator, scene, solver), save_reactions=saveat.reactions,
                ts_out=None if saveat.ts is None else device_array(saveat.ts, float))
     return _finish(sol, integrator, ctrl.max_halvings, throw)
+
+
+def _root_finder(root_finder, solver):
+    """The Newton solver of `simulate`'s `root_finder=` (or of its deprecated name
+    `solver=`, diffrax's word for the time stepper)."""
+    if solver is not None:
+        if root_finder is not None:
+            raise TypeError("simulate(): give root_finder or the deprecated solver, not both.")
+        warnings.warn("simulate(): solver= is deprecated, use root_finder= (the Newton solver of each time element; "
+                      "diffrax calls the time stepper `solver`).", DeprecationWarning, stacklevel=3)
+        return _option("solver", solver, NewtonKrylov(), NewtonKrylov, "NewtonKrylov(...)")
+    return _option("root_finder", root_finder, NewtonKrylov(), NewtonKrylov, "NewtonKrylov(...)")
 
 
 def _option(name, value, default, cls, accepted):
@@ -361,7 +401,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
         dissipated, work = c["dissipated"] + a["D"], c["work"] + a["W"]
         status = jnp.where(failed, FAILED, RUNNING)
         if eq_tol is not None:
-            at_rest = at_equilibrium(scene, a["state"], a["D"], eq_tol, H0)
+            at_rest = at_equilibrium(scene, a["state"], a["D"], eq_tol, H0, dissipated, work)
             status = jnp.where((status == RUNNING) & at_rest, EQUILIBRIUM, status)
         status = jnp.where((status == RUNNING) & (i == n_steps - 1), DONE, status)
         if dense:  # written inside the sub-steps

@@ -18,10 +18,15 @@ STEP_KEYS = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "chor
 
 
 class SolverError(RuntimeError):
-    """A time step could not be solved even at the smallest allowed step size.
+    """Raised by `simulate` (with `throw=True`) when a time step could not be solved even
+    at the smallest step allowed. `simulate(..., throw=False)` returns the `Solution`
+    with `status == "failed"` instead.
 
-    **Attributes:** `t` (time of the last good state), `state` (that `State`),
-    `solution` (everything saved up to it).
+    **Attributes:**
+
+    - `t`: the time of the last good state.
+    - `state`: that `State`.
+    - `solution`: the `Solution` with everything saved up to it.
     """
 
     def __init__(self, message, t, state, solution):
@@ -31,21 +36,32 @@ class SolverError(RuntimeError):
 
 @register_type  # a cached time loop returns one (`_export`: rebuilt from its fields, as data)
 class Solution(eqx.Module):
-    """Saved frames and per-step solver statistics of a run.
+    """What `simulate` returns: the saved frames and per-step solver statistics of a run.
 
-    Frames (leading axis = saved frame): `t`, `x`, `p`, `gamma` (if asked), `energy` (H),
-    `kinetic`, `free_energy`, `dissipated` (cumulative dissipation of the scheme),
-    `dissipation_rate`, `external_work`, `linear_momentum`, `angular_momentum`, and with
-    ``SaveAt(reactions=True)`` the force the supports exert on each held component (zero
-    on the free ones): `reaction` at the frame's time (what a load cell reads: the rate of
-    the momenta from the step's time polynomial plus the internal minus the external
-    force), and `reaction_mean`, its mean over the step that ends at the frame (the time
-    element's own discrete reaction, whose work is the energy balance's reaction work);
-    at the initial frame both are the internal minus the external force. Steps: `step_t` (end time), `step_h`, `newton_iterations` (Newton–Krylov
-    iterations), `krylov_iterations`, `chord_iterations` (iterations on the stored
-    factorization, `NewtonKrylov(chord=...)`), `residual`, `rejections`. `n_saved`, `n_steps` count the valid entries; `status` is
-    one of "done", "equilibrium", "failed", "max_steps" (an adaptive run that used all
-    its `max_steps` accepted steps before `t1`).
+    **Attributes:**
+
+    - Frames (leading axis: the saved frame): `t`, `x` (positions), `p` (momenta),
+      `gamma` (the internal variable, where `SaveAt(gamma=True)`), `energy` (the total
+      energy H), `kinetic`, `free_energy`, `dissipated` (cumulative), `dissipation_rate`,
+      `external_work` (cumulative work of the loads and moving supports),
+      `linear_momentum`, `angular_momentum`, and with `SaveAt(reactions=True)` the force
+      the supports exert on each held component (zero on the free ones): `reaction` at
+      the frame's time (what a load cell reads: the rate of the momenta from the step's
+      time polynomial plus the internal minus the external force), and `reaction_mean`,
+      its mean over the step that ends at the frame (the time element's own discrete
+      reaction, whose work is the energy balance's reaction work); at the initial frame
+      both are the internal minus the external force.
+    - Steps (one entry per step): `step_t` (end time), `step_h`, `newton_iterations`,
+      `krylov_iterations`, `chord_iterations`, `residual`, `rejections`.
+    - `status`: `"done"`, `"equilibrium"` (stopped by `Equilibrium`), `"failed"` (with
+      `throw=False`) or `"max_steps"` (an adaptive run that used all its `max_steps`
+      accepted steps before `t1`).
+    - `end_velocity`: the predictor velocity after the last step; pass it as
+      `initial_velocity` to continue the run exactly.
+    - `strain_scale`: adaptive runs, the largest strain reached (to continue the run
+      with `PIDController.continued`).
+    - `integrator`: a description of the time element; `n_saved`, `n_steps`: the
+      numbers of valid frames and steps.
     """
 
     t: jax.Array
@@ -76,11 +92,25 @@ class Solution(eqx.Module):
     reaction: jax.Array | None = None  # SaveAt(reactions=True): the supports' forces (frames, n_nodes, dim)
     reaction_mean: jax.Array | None = None  # and their means over the steps that end at the frames
 
-    def reaction_force(self, nodes=None, component=None, mean=False):
-        """The resultant force the supports exert, per frame: the nodal `reaction` (with
-        `mean`: `reaction_mean`) summed over `nodes` (indices or a boolean mask of the
-        nodes, default all held ones), (frames, dim), or one `component` of it, (frames,).
-        Needs a run with ``SaveAt(reactions=True)``."""
+    def reaction_force(self, nodes=None, component: int | None = None, mean: bool = False) -> jax.Array:
+        """The resultant force the supports exert, per frame.
+
+        **Arguments:**
+
+        - `nodes`: node indices or a boolean mask of the nodes to sum over (default: all
+          held ones).
+        - `component`: one component of the force (default: all).
+        - `mean`: sum `reaction_mean` (the means over the steps) instead of `reaction`.
+
+        **Returns:**
+
+        The nodal forces summed over `nodes`, shape `(frames, dim)`, or `(frames,)` with
+        `component`.
+
+        **Raises:**
+
+        `ValueError` for a run without `SaveAt(reactions=True)`.
+        """
         if self.reaction is None:
             raise ValueError("this Solution holds no reaction forces: run simulate with "
                              "saveat=SaveAt(reactions=True) on a scene with held components.")
@@ -93,11 +123,13 @@ class Solution(eqx.Module):
         return total if component is None else total[:, component]
 
     @property
-    def status(self):
+    def status(self) -> str:
+        """How the run ended: `"done"`, `"equilibrium"`, `"failed"` or `"max_steps"`."""
         return STATUS[int(self.status_code)]
 
-    def trimmed(self):
-        """Drop the unused tail of the preallocated buffers (host side)."""
+    def trimmed(self) -> "Solution":
+        """Drop the unused tail of the preallocated buffers (host side; `simulate` does this
+        outside `jax.jit`)."""
         ns, nt = int(self.n_saved), int(self.n_steps)
         frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
                   "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction",
@@ -110,8 +142,9 @@ class Solution(eqx.Module):
             out = eqx.tree_at(lambda s: getattr(s, name), out, _index(getattr(self, name), slice(nt)))
         return out
 
-    def state(self, i=-1) -> State:
-        """The state of frame `i`."""
+    def state(self, i: int = -1) -> State:
+        """The `State` of frame `i` (default: the last), e.g. to continue the run with
+        `simulate(..., initial_state=sol.state(), initial_velocity=sol.end_velocity)`."""
         at = lambda a: None if a is None else _index(a, i)  # noqa: E731
         return State(at(self.x), at(self.p), at(self.gamma))
 

@@ -2,7 +2,7 @@
 
 The controller follows diffrax's `PIDController` (same names and meaning of `rtol`,
 `atol`, `pcoeff`, `icoeff`, `dcoeff`, `dtmin`, `dtmax`, `factormin`, `factormax`,
-`safety`), with the error estimate of `_estimate` (order k + 1 for cG(k)/eG(k)) and one
+`safety`), with the error estimate of `_time_element._estimate` (order k + 1 for cG(k)/eG(k)) and one
 addition for implicit steps, as in Hairer & Wanner's Radau5: a proposed change of the
 step by a factor in ``[1, keep_band]`` keeps the step, so that the stored factorization
 of the condensed tangent (formed for one h) serves the next steps too.
@@ -34,50 +34,51 @@ def _positive(name, value, allow_zero=False, allow_inf=False):
 
 
 class PIDController(AbstractStepSizeController):
-    """Error-controlled step sizes for `simulate(..., stepsize_controller=...)`.
+    r"""Error-controlled step sizes (`simulate(..., stepsize_controller=...)`), with
+    diffrax's names and meaning.
 
-    A step is accepted where its error estimate, in units of ``atol + rtol * scale``,
-    is at most 1 (positions, momenta and the internal variable are scaled separately:
-    see `_estimate.scaled_error`); the next step is ``h * factor`` with
+    Each step's error is estimated from the defect of its own time polynomial (order
+    $k + 1$ for cG(k) and eG(k)); a step is accepted where the estimate, in units of
+    `atol + rtol * scale`, is at most 1, and rejected and retried smaller otherwise. The
+    next step is $h \cdot \mathrm{clip}(s\, e_n^{-(p + i + d)/r} e_{n-1}^{(p + 2d)/r}
+    e_{n-2}^{-d/r},\ f_{min}, f_{max})$ with $r = k + 1$, $s$ `safety`, $p, i, d$ the
+    coefficients; a PI controller by default. A proposed change by a factor within
+    `[1, keep_band]` keeps the step, so that the stored factorization serves the next
+    steps. A step whose Newton solve fails is halved. A step at `dtmin` is accepted
+    whatever its error; a Newton failure there ends the run (`status == "failed"`).
 
-    ``factor = safety * e_n^(-(pcoeff + icoeff + dcoeff)/r) * e_{n-1}^((pcoeff + 2 dcoeff)/r)
-    * e_{n-2}^(-dcoeff/r)``, ``r = k + 1``,
+    Positions are measured against their distance from the centroid; the internal
+    variable $\Gamma$ (a strain) against its distance from the virgin state, with
+    `atol` in units of the largest strain $|C - I|$ the run has reached (at least
+    `strain_scale`), so that a body coming to rest keeps the tolerance of its largest
+    deformation. Step sizes are constants of the derivative: `jax.grad` of an adaptive
+    run differentiates it along its accepted steps.
 
-    clipped to ``[factormin, factormax]`` (a PI controller by default: see below). A rejected
-    step is retried with ``safety * e^(-1/r)`` (at most 1, at least `factormin`); a step
-    whose Newton solve fails, with half the step. Steps stay within ``[dtmin, dtmax]``;
-    a step at `dtmin` is accepted whatever its error (as diffrax's ``force_dtmin``), and
-    a Newton failure there ends the run (``status == "failed"``).
+    **Arguments:**
 
-    **Arguments:** `rtol`, `atol` (> 0 together: at least one positive);
-    `dtmin` (0), `dtmax` (inf); `pcoeff` (0.2), `icoeff` (0.4), `dcoeff` (0); `safety` (0.9);
-    `factormin` (0.2), `factormax` (10); `keep_band` (1.2: keep h where the proposed
-    factor lies in ``[1, keep_band]``; 1 disables it); `strain_scale` (0): the least
-    strain that `atol` on the internal variable is measured in (see below).
+    - `rtol`, `atol`: relative and absolute tolerance (>= 0, at least one positive).
+    - `dtmin`, `dtmax`: the smallest and largest step (0 and inf).
+    - `pcoeff`, `icoeff`, `dcoeff`: the PID coefficients (0.2, 0.4, 0; diffrax's
+      default is the integral controller 0, 1, 0).
+    - `safety`: the safety factor (0.9).
+    - `factormin`, `factormax`: the smallest and largest change of the step (0.2, 10).
+    - `keep_band`: keep the step where the proposed factor lies in `[1, keep_band]`
+      (1.2; 1 disables it).
+    - `strain_scale`: the least strain that `atol` on the internal variable is measured
+      in (0). A run continued from another (in chunks, as the `jaxvisco` command runs)
+      passes the earlier run's `Solution.strain_scale`, see `continued`.
 
-    The internal variable Γ is a strain: its tolerance is ``atol * a + rtol * |Γ - I|``
-    (root mean squares over the body), where ``a`` is the largest strain ``|C - I|``
-    the run has reached so far, from its initial state on, and at least `strain_scale`.
-    A body that comes to rest thereby keeps the tolerance of its largest deformation and
-    its steps grow (measured against the strain of the moment, they kept the size of its
-    vibrations: `benchmarks/adaptive_relaxation.py`). A run continued from another's end
-    state (in chunks, as the ``jaxvisco`` command runs) passes the earlier run's
-    `Solution.strain_scale` here to keep the same tolerance. The tolerance on Γ is never
-    below 16 units of its rounding (3.6e-15): a body that starts undeformed (``a`` and
-    ``|Γ - I|`` ~ 0) would otherwise be held to less than rounding at its first step
-    where atol < 2.4e-7 (at 1e-9 every step was rejected).
+    **Raises:**
 
-    The default coefficients differ from diffrax's integral controller (0, 1), by
-    measurement (paper's 2D L-shape to t = 10, eG(1..3), rtol = atol = 1e-3 and 1e-5,
-    medians of 3 alternating runs; `benchmarks/controller_coefficients.py`): with (0.2,
-    0.4) every run took 0.68-0.85 times the wall time of (0, 1) (two sessions of rounds)
-    and was more accurate (position error 1.4-3.3 times, dissipated energy 1.5-6.9 times
-    smaller), rejected 0-8 steps instead of 2-46 and reused the tangent more (fewer
-    Newton iterations), in 1.3-1.8 times as many steps; (0.3, 0.3) was slower in five of
-    six cases (by up to 24 %), faster in one (3 %).
+    `ValueError` for a value out of its range (named with the value).
 
-    Step sizes are constants of the derivative: `jax.grad` of an adaptive run
-    differentiates the run along its accepted steps (see `simulate`).
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    ctrl = jv.PIDController(rtol=1e-4, atol=1e-4)   # simulate(..., stepsize_controller=ctrl)
+    ```
     """
 
     rtol: jax.Array
@@ -124,9 +125,9 @@ class PIDController(AbstractStepSizeController):
         self.safety, self.factormin, self.factormax, self.keep_band = f(safety), f(factormin), f(factormax), f(keep_band)
         self.strain_scale = f(strain_scale)
 
-    def continued(self, strain):
+    def continued(self, strain) -> "PIDController":
         """This controller for a run that continues one whose largest strain was `strain`
-        (its `Solution.strain_scale`): `strain_scale` at least that."""
+        (its `Solution.strain_scale`): the same, with `strain_scale` at least `strain`."""
         if isinstance(strain, jax.core.Tracer) or isinstance(self.strain_scale, jax.core.Tracer):
             scale = jnp.maximum(self.strain_scale, jnp.asarray(strain, float))
         else:  # on the host (`device_array`)

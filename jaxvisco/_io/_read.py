@@ -49,13 +49,26 @@ def _frames(f, path, last_only=False):
     return out
 
 
-def read_results(path) -> dict:
+def read_results(path: str | os.PathLike) -> dict:
     """Read the committed part of a results file into a dict of numpy arrays.
 
-    Keys: ``points``, ``cells``, ``cell_type``, ``t``, ``x``, ``p`` (and ``gamma``,
-    ``reaction`` and ``reaction_mean`` if stored), every diagnostic and step array under its own name, and ``attrs`` (root
-    attributes). Rows written after the last commit (a run killed in the middle of an
-    append) are never returned.
+    Rows written after the last commit (a run killed in the middle of an append) are
+    never returned.
+
+    **Arguments:**
+
+    - `path`: the `.h5` results file.
+
+    **Returns:**
+
+    A dict with `points`, `cells`, `cell_type`, `t`, `x`, `p` (and `gamma`, `reaction`
+    and `reaction_mean` if stored), every diagnostic and step array under its `Solution`
+    name, and `attrs` (the root attributes).
+
+    **Raises:**
+
+    `FileNotFoundError` for a missing file; `ValueError` for a file that is not a
+    jaxvisco results file.
     """
     with open_results(path) as f:
         out = _frames(f, os.fspath(path))
@@ -107,15 +120,19 @@ def check_restart(f, path, frames=None):
 
 
 class Restart(NamedTuple):
-    """What a results file holds to continue a run (`read_restart`).
+    """What a results file holds to continue a run: what `read_restart` returns.
 
-    `t`: time of the last committed frame; `state`: the `State` there (with the full
-    internal variable, or None if the file lacks it); `velocity`: the predictor
-    velocity of the next step (None where unknown: a restart then starts from the
-    velocity of the momenta, which changes the following steps at the level of the
-    Newton tolerance); `n_frames`, `n_steps`: committed frames and steps; `dissipated`,
-    `external_work`: the cumulative values at `t`; `attrs`: root attributes
-    (``parameters`` decoded from JSON where it is JSON).
+    **Attributes:**
+
+    - `t`: the time of the last committed frame.
+    - `state`: the `State` there (with the full internal variable; its `gamma` is None
+      where the file lacks it).
+    - `velocity`: the predictor velocity of the next step (None where unknown: a restart
+      then starts from the velocity of the momenta, which changes the following steps at
+      the level of the Newton tolerance).
+    - `n_frames`, `n_steps`: the committed frames and steps.
+    - `dissipated`, `external_work`: the cumulative values at `t`.
+    - `attrs`: the root attributes (`parameters` decoded from JSON where it is JSON).
     """
 
     t: float
@@ -128,11 +145,25 @@ class Restart(NamedTuple):
     attrs: dict
 
 
-def read_restart(path) -> Restart:
-    """The verified restart data of a results file: continue with
-    ``simulate(scene, integrator, r.t, t1, dt0, initial_state=r.state, initial_velocity=r.velocity)``
-    (see `jaxvisco.resume`). A file whose restart state disagrees with its last
-    committed frame is refused with a `ValueError` naming the mismatch."""
+def read_restart(path: str | os.PathLike) -> Restart:
+    """The verified restart data of a results file.
+
+    Continue the run with `simulate(scene, integrator, r.t, t1, dt0,
+    initial_state=r.state, initial_velocity=r.velocity)`, or with `resume`.
+
+    **Arguments:**
+
+    - `path`: the `.h5` results file.
+
+    **Returns:**
+
+    A `Restart`.
+
+    **Raises:**
+
+    `ValueError` for a file whose restart state disagrees with its last committed frame
+    (naming the mismatch) or that is not a results file; `FileNotFoundError`.
+    """
     import jax.numpy as jnp
 
     from .._scene import State

@@ -22,6 +22,7 @@ fsync ordering.
 
 import json
 import os
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,11 +40,20 @@ from ._layout import (
 from ._read import check_restart, open_results
 from ._xdmf import extend_xdmf, pad3, write_xdmf
 
+if TYPE_CHECKING:
+    from .._integrate._solution import Solution
+    from .._scene import Scene
+
 
 class ResultsWriter:
     """Append-as-you-go, crash-consistent writer of a results file (HDF5 + XDMF).
 
+    Each `append` commits in two phases, so that a process killed at any instant leaves a
+    file whose committed frames and restart record are intact (the user guide's page on
+    results files states the guarantees and how they are tested).
+
     **Arguments:**
+
     - `path`: the ``.h5`` file; the XDMF goes beside it (``name.xdmf``).
     - `scene`: the `Scene` (its mesh and parameters are recorded, and
       `write_initial_state` can evaluate its diagnostics) or just a `Mesh`. Not needed
@@ -56,6 +66,25 @@ class ResultsWriter:
       cut away, cumulative dissipation and external work continue from its last frame.
     - `durable`: fsync at every commit (default True), so a commit survives a power
       loss; a SIGKILL cannot undo a commit either way.
+
+    **Raises:**
+
+    `FileExistsError` for an existing file without `overwrite` or `append`;
+    `ValueError` for a file to append to that is not a results file.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jaxvisco as jv
+
+    scene = jv.scenes.lshape()
+    with jv.ResultsWriter("pieces.h5", scene, {"note": "two parts"}, overwrite=True) as w:
+        w.write_initial_state()
+        part = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, saveat=jv.SaveAt(gamma=True))
+        w.append(part, skip_first=True)
+    ```
     """
 
     def __init__(self, path, scene=None, attrs=None, *, xdmf=True, overwrite=False, append=False, durable=True):
@@ -286,7 +315,7 @@ class ResultsWriter:
         if self.xdmf_path and n_ok and not renamed and self._partial is None:
             extend_xdmf(self.xdmf_path, self.path, self.f, n0, self.n_frames)
 
-    def close(self, status=None):
+    def close(self, status: str | None = None) -> None:
         """Set the final `status` (if given), flush and close. A new file that never
         committed a frame is removed (an existing file it was to replace stays)."""
         if self.f:
@@ -306,14 +335,46 @@ class ResultsWriter:
         self.close()
 
 
-def save(solution, scene, path, *, gamma=None, attrs=None, overwrite=False, xdmf=True):
-    """Write a `Solution` of any scene to a results file (HDF5 + XDMF, see
-    `ResultsWriter`), so it opens in ParaView, `jaxvisco plot` and `read_results`.
+def save(solution: "Solution", scene: "Scene", path: str | os.PathLike, *, gamma: bool | None = None, attrs: dict | None = None, overwrite: bool = False,
+         xdmf: bool = True) -> str:
+    """Write a `Solution` of any scene to a results file (HDF5, with an XDMF file beside
+    it), which ParaView, `jaxvisco plot` and `read_results` open.
 
-    `gamma`: also store the internal variable of every frame (default: when the
-    solution has it). The restart record holds the last frame (with its full internal
-    variable if the solution has it), so `resume` can continue the run. The file's
-    status is the solution's. **Returns:** the path.
+    The restart record holds the last frame (with its full internal variable if the
+    solution has it), so `resume` can continue the run. The file's status is the
+    solution's.
+
+    **Arguments:**
+
+    - `solution`: the `Solution`.
+    - `scene`: the `Scene` it ran (its mesh and parameters are recorded).
+    - `path`: the `.h5` file.
+    - `gamma`: also store the internal variable of every frame (default: when the
+      solution has it).
+    - `attrs`: root attributes to add (scalars or strings; anything else as JSON).
+    - `overwrite`: replace an existing file (default: refuse).
+    - `xdmf`: also write the XDMF time series for ParaView (default True).
+
+    **Returns:**
+
+    The path of the results file.
+
+    **Raises:**
+
+    `FileExistsError` for an existing file without `overwrite`.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jaxvisco as jv
+
+    scene = jv.scenes.lshape()
+    sol = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, saveat=jv.SaveAt(gamma=True))
+    jv.save(sol, scene, "run.h5", overwrite=True)   # with Γ, so that resume can continue it
+    r = jv.read_results("run.h5")
+    ```
     """
     if gamma is None:
         gamma = getattr(solution, "gamma", None) is not None

@@ -17,10 +17,16 @@ documents each one; paths are relative to the scene file):
 - ``[[dirichlet]]``: ``nodes``, ``components``, ``displacement``, ``time``.
 - ``[[load]]``: ``nodes``, ``force`` (on each node), ``time``.
 - ``[[traction]]``: ``facets``, ``traction`` or ``pressure``, ``time``.
-- ``[integrator]``: ``name``, ``order``; ``[solver]``: `NewtonKrylov`'s keywords.
-- ``[time]``: ``t_end``, ``dt`` or ``schedule``, ``max_halvings``; or ``rtol``/``atol``
-  (error-controlled steps; ``dt`` the first step tried).
-- ``[output]``: ``file``, ``save_every``, ``save_gamma``, ``chunk``, ``commit_every``.
+- ``[integrator]``: ``name``, ``order``, ``quadrature``; ``[solver]``: `NewtonKrylov`'s
+  keywords, ``[solver.gmres]``: `GMRES`'s.
+- ``[time]``: ``t0``, ``t1``, ``dt0`` or ``schedule``, ``max_halvings``; or
+  ``rtol``/``atol`` (error-controlled steps; ``dt0`` the first step tried).
+- ``[saveat]``: ``every``, ``gamma``; ``[output]``: ``file``, ``chunk``, ``commit_every``.
+
+The names of jaxvisco 0.1 (``[time]`` ``t_end``, ``dt``; ``[output]`` ``save_every``,
+``save_gamma``; ``[solver]`` ``krylov``, ``krylov_max_steps``, ``refresh_after``,
+``preconditioner``, ``restart``, ``multigrid_precision``) are deprecated aliases
+(`_scenerun`).
 
 A time function is a table ``{ type = "step", at = 1.0, ... }`` of a small fixed set
 (`_time_functions`); no user text is ever evaluated. The whole file is checked before
@@ -30,9 +36,10 @@ file, the table and key, the bad value and what is accepted, e.g.
 ``beam.toml: [[load]] 2: nodes: no node group 'tipp'; ...``.
 """
 
-import dataclasses
 import math
 import os
+import warnings
+from typing import Optional
 
 import numpy as np
 
@@ -41,52 +48,18 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
+from ._result import SceneFile as SceneFile
 from ._scenematerial import MaterialReader as _MaterialReader
 from ._scenerun import RunReader as _RunReader
 from ._scenetable import Table as _Table
 from ._scenetemplate import TEMPLATE as TEMPLATE
 
 _TABLES = ("mesh", "groups", "material", "initial", "dirichlet", "load", "traction", "integrator", "solver", "time",
-           "output")
+           "saveat", "output")
 _ARRAYS = ("dirichlet", "load", "traction")
 _GENERATOR_KEYS = {"rectangle": ("nx", "ny", "lx", "ly", "origin"),
                    "box": ("nx", "ny", "nz", "lx", "ly", "lz", "origin"), "lshape": ("dim", "refinement")}
 _AXES = "xyz"
-
-
-@dataclasses.dataclass(frozen=True)
-class SceneFile:
-    """A scene file, read and checked (`read_scene_file`).
-
-    `scene`: the `Scene`; `integrator`; `steps`: the `StepTo` from 0 to `t_end`; `dt`:
-    the step or schedule ``((t_until, dt), ...)`` it came from; `solver`: the
-    `NewtonKrylov` settings; `max_halvings`; `rtol`, `atol`: the tolerances of
-    error-controlled steps (None for a fixed dt or schedule; then `steps` is None and `dt`
-    the first step tried, or None); `output`: dict with ``file`` (resolved
-    against the scene file's folder), ``save_every``, ``save_gamma``, ``chunk``,
-    ``commit_every``; `source`: the file's text; `path`; `base_dir`: where relative paths
-    start.
-    """
-
-    scene: object
-    integrator: object
-    steps: object
-    t_end: float
-    dt: object
-    solver: object
-    max_halvings: int
-    output: dict
-    source: str
-    path: str
-    base_dir: str
-    rtol: object = None
-    atol: object = None
-    node_groups: object = None  # name -> node indices: the [groups] tables and the mesh file's node groups
-
-    def nodes(self, name):
-        """The node indices of the group `name` (a ``[groups.NAME]`` table or a node
-        group of the mesh file); a `ValueError` naming the groups there are otherwise."""
-        return self.node_groups(name)
 
 
 class _Reader(_MaterialReader, _RunReader):
@@ -94,6 +67,7 @@ class _Reader(_MaterialReader, _RunReader):
 
     def __init__(self, name, doc, base_dir):
         self.name, self.doc, self.base_dir = name, doc, base_dir
+        self.notes = []  # deprecated names used (`SceneFile.deprecated`)
         for key, value in doc.items():
             if key not in _TABLES:
                 raise ValueError(f"{name}: unknown table [{key}]; accepted: "
@@ -101,12 +75,12 @@ class _Reader(_MaterialReader, _RunReader):
             if key in _ARRAYS and not (isinstance(value, list) and all(isinstance(e, dict) for e in value)):
                 raise ValueError(f"{name}: [{key}] must be an array of tables: write [[{key}]] (one per entry).")
 
-    def table(self, key, accepted, required=True):
+    def table(self, key, accepted, required=True, aliases=None):
         if key not in self.doc and not required:
-            return _Table(self.name, {}, f"[{key}]", accepted)
+            return _Table(self.name, {}, f"[{key}]", accepted, aliases)
         if key not in self.doc:
             raise ValueError(f"{self.name}: [{key}]: missing (required).")
-        return _Table(self.name, self.doc[key], f"[{key}]", accepted)
+        return _Table(self.name, self.doc[key], f"[{key}]", accepted, aliases)
 
     def entries(self, key, accepted):
         return [_Table(self.name, e, f"[[{key}]] {i}", accepted) for i, e in enumerate(self.doc.get(key, []), 1)]
@@ -138,7 +112,7 @@ class _Reader(_MaterialReader, _RunReader):
         try:
             if gen == "lshape":
                 mesh = lshape_mesh(dim=t.integer("dim", 2, minimum=2, maximum=3),
-                                   refinement=t.integer("refinement", 1, minimum=1), element=cell_type)
+                                   refinement=t.integer("refinement", 1, minimum=1), cell_type=cell_type)
             else:
                 dim = 2 if gen == "rectangle" else 3
                 counts = [t.integer(k, minimum=1) for k in ("nx", "ny", "nz")[:dim]]
@@ -310,17 +284,16 @@ class _Reader(_MaterialReader, _RunReader):
 
     def initial_velocity(self):
         t = self.table("initial", ("velocity", "angular_velocity", "center", "velocity_field"), required=False)
-        dim, X = self.mesh.dim, np.asarray(self.mesh.points)
-        v = np.broadcast_to(t.vector("velocity", dim, np.zeros(dim)), X.shape).copy()
-        if t.has("angular_velocity"):
-            Y = X - t.vector("center", dim, np.zeros(dim))
-            if dim == 2:
-                w = t.number("angular_velocity")
-                v = v + w * np.stack([-Y[:, 1], Y[:, 0]], axis=-1)
-            else:
-                v = v + np.cross(t.vector("angular_velocity", 3), Y)
-        elif t.has("center"):
+        from .._fem._rigid import rigid_velocity
+
+        dim = self.mesh.dim
+        if t.has("center") and not t.has("angular_velocity"):
             raise t.error("center", "a center needs an angular_velocity.")
+        w = None
+        if t.has("angular_velocity"):
+            w = t.number("angular_velocity") if dim == 2 else t.vector("angular_velocity", 3)
+        v = np.array(rigid_velocity(self.mesh, velocity=t.vector("velocity", dim, np.zeros(dim)), angular_velocity=w,
+                                    center=t.vector("center", dim, None) if t.has("center") else None))
         fields = t.raw("velocity_field", [])
         if not (isinstance(fields, list) and all(isinstance(e, dict) for e in fields)):
             raise t.error("velocity_field", "write it as an array of tables [[initial.velocity_field]].")
@@ -338,18 +311,39 @@ def _has_node_group(groups, name):
     return True
 
 
-def read_scene_file(path, *, source=None, base_dir=None) -> SceneFile:
-    """Read and check a scene file; returns a `SceneFile` (see the module docstring for
-    the format, ``jaxvisco scene-template`` for a commented example).
+def read_scene_file(path: str | os.PathLike, *, source: Optional[str] = None, base_dir: Optional[str] = None
+                    ) -> SceneFile:
+    """Read and check a scene file (TOML): the scene and its run settings.
+
+    The format is described in the user guide's scene-file page, and
+    `jaxvisco scene-template` prints a commented file with every table and key. Keys
+    of jaxvisco 0.1 (`t_end`, `dt`, `save_every`, ...) are read with a `FutureWarning`
+    naming their replacements.
 
     **Arguments:**
-    - `path`: the ``.toml`` file (its name starts every error message).
-    - `source`: the file's text, to read a stored copy instead of `path` (``--resume``).
+
+    - `path`: the `.toml` file (its name starts every error message).
+    - `source`: the file's text, to read a stored copy instead of `path`.
     - `base_dir`: where relative paths start (default: the folder of `path`).
 
-    Raises `ValueError` (one line: file, table, key, bad value, what is accepted) for
-    anything wrong in the file, `FileNotFoundError` if `path` does not exist.
+    **Returns:**
+
+    A `SceneFile`.
+
+    **Raises:**
+
+    `ValueError` (one line: file, table, key, bad value and what is accepted) for
+    anything wrong in the file; `FileNotFoundError` if `path` does not exist.
     """
+    sf = read_quietly(path, source=source, base_dir=base_dir)
+    for note in sf.deprecated:
+        warnings.warn(note + ".", FutureWarning, stacklevel=2)
+    return sf
+
+
+def read_quietly(path, source=None, base_dir=None) -> SceneFile:
+    """`read_scene_file` without its warnings (the command line prints the notes of
+    `SceneFile.deprecated` itself)."""
     name = os.fspath(path)
     if source is None:
         if not os.path.isfile(name):
@@ -364,8 +358,8 @@ def read_scene_file(path, *, source=None, base_dir=None) -> SceneFile:
         raise ValueError(f"{name}: not valid TOML: {e}") from None
     r = _Reader(name, doc, os.fspath(base_dir))
     options = r.run_options()
-    return SceneFile(scene=r.scene(), source=source, path=name, base_dir=r.base_dir, node_groups=r.node_group,
-                     **options)
+    return SceneFile(scene=r.scene(), source=source, path=name, base_dir=r.base_dir, deprecated=tuple(r.notes),
+                     node_groups=r.node_group, **options)
 
 
 def scene_from_file(path):

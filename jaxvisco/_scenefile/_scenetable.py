@@ -11,13 +11,19 @@ _REQUIRED = object()
 class Table:
     """One TOML table being read: typed access with messages naming file, table, key."""
 
-    def __init__(self, name, data, where, accepted):
+    def __init__(self, name, data, where, accepted, aliases=None):
+        """`accepted`: the keys of the table; `aliases`: deprecated names of some of them
+        (old name -> the accepted key or the place that replaces it), accepted too but
+        not listed in messages (`deprecated` names those used)."""
         self.name, self.where, self.data = name, where, data
         if not isinstance(data, dict):
             raise ValueError(f"{name}: {where}: expected a table, got {data!r}.")
+        aliases = aliases or {}
         for key in data:
-            if key not in accepted:
+            if key not in accepted and key not in aliases:
                 raise ValueError(f"{name}: {where}: unknown key {key!r}; accepted: {', '.join(accepted)}.")
+        self.deprecated = [f"{name}: {where}: {key} is deprecated, write {aliases[key]}"
+                           for key in data if key in aliases]
 
     def error(self, key, msg):
         return ValueError(f"{self.name}: {self.where}: {key}: {msg}")

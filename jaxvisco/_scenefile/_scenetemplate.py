@@ -100,26 +100,39 @@ time = { type = "step", at = 1.0, before = 1.0, after = 0.0 }
 [integrator]
 name = "eG"                  # cG, eG (energy-consistent), Newmark or Midpoint
 order = 1                    # polynomial degree k of cG(k) / eG(k)
+# quadrature = 2             # Gauss points in time of cG/eG (default k; jaxvisco.eG(k, quadrature=))
 
-# [solver]                   # optional: Newton settings (jaxvisco.NewtonKrylov, its GMRES)
-# rtol = 1e-10               # also: max_iterations, linear_solver ("krylov"/"direct"),
-#                            # krylov ("gmres"/"lineax"), krylov_max_steps, refresh_after,
+# [solver]                   # optional: the Newton root finder (jaxvisco.NewtonKrylov's keywords)
+# rtol = 1e-10               # also: max_iterations, linear_solver ("gmres" or "direct"),
+#                            # line_search, stall_limit, reuse_limit, reuse_band, chord,
+#                            # chord_contraction, retain
+# [solver.gmres]             # optional: its linear solver (jaxvisco.GMRES's keywords)
+# max_steps = 60             # also: refresh_after, backend ("jaxvisco"/"lineax"),
 #                            # preconditioner ("auto"/"lu"/"amg": the block solve of
 #                            # GMRES; "amg" is multigrid, for large 3D meshes),
 #                            # restart (GMRES's basis length), multigrid_precision
-#                            # ("single"/"double": the multigrid's arithmetic),
-#                            # line_search, reuse_limit, chord, chord_contraction
+#                            # ("single"/"double": the multigrid's arithmetic)
 
-[time]
-t_end = 3.0                  # final time (default: the schedule's last time)
-dt = 0.05                    # a constant step ...
+[time]                       # the names of jaxvisco.simulate
+# t0 = 0.0                   # start time (default 0)
+t1 = 3.0                     # end time (default: the schedule's last time)
+dt0 = 0.05                   # a constant step ...
 # schedule = [[1.0, 0.05], [3.0, 0.1]]   # ... or steps [t_until, dt] (piecewise constant)
+# rtol = 1e-4                # ... or error-controlled steps (jaxvisco.PIDController; atol
+# atol = 1e-4                # defaults to rtol); dt0 is then the first step tried
 max_halvings = 6             # a failed step is halved at most this often
+
+[saveat]                     # what to keep (jaxvisco.SaveAt)
+every = 1                    # keep every n-th step
+gamma = false                # also store the internal variable
 
 [output]                     # optional; command-line options override these
 file = "scene.h5"            # results file (default: this file's name with .h5)
-save_every = 1               # keep every n-th step
-save_gamma = false           # also store the internal variable
 # chunk = 50                 # at most this many steps per compiled call
 # commit_every = 5.0         # commit at least about every so many seconds (0: every chunk)
+
+# Names of jaxvisco 0.1, still read (with a deprecation note): [time] t_end = t1, dt = dt0;
+# [output] save_every = [saveat] every, save_gamma = [saveat] gamma; [solver] krylov,
+# krylov_max_steps, refresh_after, preconditioner, restart, multigrid_precision =
+# [solver.gmres] backend ("gmres" = "jaxvisco"), max_steps, refresh_after, ...
 '''

@@ -42,7 +42,7 @@ AMG_RESTART = 10
 
 
 class AbstractLinearSolver(eqx.Module):
-    """The linear solve of a Newton iteration (`GMRES` or `Direct`)."""
+    """The linear solve of a Newton iteration: `GMRES` or `Direct`."""
 
     def block_solver(self, scene):
         """How the condensed position block of `scene` is solved: ``"lu"`` or ``"amg"``
@@ -72,41 +72,43 @@ class AbstractLinearSolver(eqx.Module):
 
 
 class GMRES(AbstractLinearSolver):
-    """Newton–Krylov: GMRES on the JVP of the step residual, right-preconditioned by the
-    exact block solve with a condensed tangent that is kept across iterations and steps
-    (the default).
+    """Newton–Krylov (the default linear solver of `NewtonKrylov`): GMRES on the
+    Jacobian-vector product of the step residual, right-preconditioned by a solve with
+    the condensed tangent, which is kept across iterations and steps.
 
     **Arguments:**
+
     - `max_steps`: Krylov vectors per Newton iteration (60).
     - `refresh_after`: re-form the tangent once GMRES needed more vectors than this (5);
-      on the multigrid path at the start of the next step (`NewtonKrylov`'s `chord`).
-    - `backend`: ``"jaxvisco"`` (default: a GMRES that checks the residual after every
-      Arnoldi step, `_fem._krylov.gmres`) or ``"lineax"`` (lineax's `GMRES`, restarted
-      every 5 vectors; it checks convergence once per restart cycle and needs two cycles,
-      so it costs more Krylov vectors).
-    - `preconditioner`: how the preconditioner solves the condensed position block:
-      ``"lu"`` (a sparse LU on the host, exact where the tangent was formed), ``"amg"``
-      (`_amg.CYCLES` = 6 W-cycles of smoothed-aggregation multigrid in JAX: no fill, no host
-      call, time and memory that grow about linearly with the mesh) or ``"auto"`` (the
-      default: the multigrid for 3D meshes with at least `AUTO_AMG_UNKNOWNS` = 20 000
-      position unknowns, where it measured faster, the LU otherwise).
-    - `restart`: Krylov vectors kept before GMRES restarts (None, the default: no
-      restart on the LU path, `AMG_RESTART` = 10 on the multigrid path, where the basis
-      over every unknown is the largest array of a step). `max_steps` bounds the vectors
-      of all cycles together.
-    - `multigrid_precision`: ``"single"`` (the default) or ``"double"``: the arithmetic of
-      the multigrid's operators and cycles (``"amg"``). Only the preconditioner runs in
-      float32: the residuals, Krylov vectors, Newton and chord updates stay float64, and
-      the step converges to the same float64 tolerance. A block solve needs to reduce
-      the block residual by `_amg.CHORD_RTOL` = 0.02 per chord iteration (or six cycles'
-      worth inside GMRES), far above float32 rounding; the cycles' memory traffic halves.
-      Measured (3D L-shape hex8, eG(1), h = 0.1, one W-cycle, median of 7): r4 17.1 ->
-      10.6 ms, r6 70.5 -> 34.0 ms, r8 166 -> 96 ms; residual reduction per cycle equal to
-      two digits (r8 0.6187 / 0.6189). Whole steps, r8 (196 875 unknowns), 5 steps, two
-      alternating pairs: 14.6 / 15.5 -> 10.8 / 11.5 s/step, same chord, Newton and Krylov
-      counts (6.4, 0.6, 2.0 per step), peak RSS 4.27 -> 4.16 GB. ``"double"`` solves the
-      block to any tolerance (float32 stops near 1e-6). Derivatives of a run (the implicit
-      solve of each step, `_implicit`) use a float64 multigrid either way.
+      on the multigrid path at the start of the next step.
+    - `backend`: `"jaxvisco"` (default: a GMRES that checks its residual after every
+      Arnoldi step) or `"lineax"` (lineax's GMRES, restarted every 5 vectors; it checks
+      convergence once per restart cycle, so it costs more vectors).
+    - `preconditioner`: how the condensed position block is solved: `"lu"` (a sparse LU
+      on the host, exact where the tangent was formed), `"amg"` (six W-cycles of
+      smoothed-aggregation multigrid in JAX: no fill-in, no host call, cost about linear
+      in the mesh, runs on GPUs) or `"auto"` (default: the multigrid for 3D meshes with
+      at least 20 000 position unknowns, the LU otherwise).
+    - `restart`: Krylov vectors kept before GMRES restarts (None, the default: no restart
+      on the LU path, 10 on the multigrid path, where the basis over every unknown is the
+      largest array of a step). `max_steps` bounds the vectors of all cycles together.
+    - `multigrid_precision`: `"single"` (default) or `"double"`, the arithmetic of the
+      multigrid's operators and cycles. Only the preconditioner runs in float32: the
+      residuals, Krylov vectors and updates stay float64 and the step converges to the
+      same tolerance. `"double"` can solve the block to any tolerance (float32 stops
+      near 1e-6). Derivatives of a run use a float64 multigrid either way.
+
+    **Raises:**
+
+    `ValueError` for a setting out of its range or not among the accepted strings.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    root_finder = jv.NewtonKrylov(linear_solver=jv.GMRES(max_steps=30, preconditioner="lu"))
+    ```
     """
 
     max_steps: int = eqx.field(static=True, default=60)
@@ -134,9 +136,10 @@ class GMRES(AbstractLinearSolver):
 
 
 class Direct(AbstractLinearSolver):
-    """Exact Newton steps: the condensed tangent is formed and factored at every
-    iteration (no Krylov vectors, no chord iterations); the robust choice for stiff
-    regimes."""
+    """Exact Newton steps (`NewtonKrylov(linear_solver=Direct())`): the condensed
+    tangent is formed and factored at every iteration; no Krylov vectors, no chord
+    iterations. The robust choice for stiff regimes, and the one with which a run split
+    into parts repeats the uninterrupted run exactly."""
 
 
 _STRINGS = {"krylov": GMRES, "direct": Direct}

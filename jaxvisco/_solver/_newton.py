@@ -48,70 +48,61 @@ _STALL_HALVINGS = 3
 
 
 class NewtonKrylov(eqx.Module):
-    """Settings of the nonlinear solver of each time element.
+    """The Newton solver of each time element (`simulate(..., root_finder=...)`).
+
+    Each step starts with chord iterations on a stored factorization of the condensed
+    tangent where one fits the step, and continues with Newton iterations whose linear
+    systems are solved by `linear_solver` (GMRES preconditioned with the condensed
+    tangent by default, or exact sparse Newton steps with `Direct()`). A backtracking
+    line search guards each Newton iteration. The tangent is kept across iterations and
+    steps and re-formed when it no longer serves. The benchmarks pages give the
+    measurements behind each default.
 
     **Arguments:**
-    - `rtol`: convergence when the momentum residual (relative to the momentum scale of
-      the step) and the evolution residual are below it (max norm). Default 1e-10. A
-      residual below 1000 rtol that an iteration no longer halves is accepted too: that
-      is the rounding floor of the residual, which Newton cannot go below. Energy balance
-      and momenta hold to this tolerance: the paper's L-shape drifts ~3e-10 in angular
-      momentum over its first 1000 steps at 1e-10 and ~1e-13 at 1e-12 (about 25 % more
-      iterations), the setting for long runs.
+
+    - `rtol`: the tolerance: a step has converged when the momentum residual (relative
+      to the step's momentum scale) and the evolution residual are below it (max norm).
+      Default 1e-10. The energy balance and the momenta hold to this tolerance; 1e-12
+      suits long runs (about 25 % more iterations). A residual below 1000 `rtol` that an
+      iteration no longer halves is accepted too (the rounding floor).
     - `max_iterations`: Newton iterations before the step counts as failed (20).
-    - `linear_solver`: `GMRES(max_steps=60, refresh_after=5, backend="jaxvisco")` (the
-      default: GMRES with the condensed-tangent preconditioner) or `Direct()` (exact
-      Newton steps with a fresh sparse factorization); see `_linear`. The strings
-      ``"krylov"`` and ``"direct"`` mean `GMRES()` and `Direct()`; the keywords `krylov`,
-      `krylov_max_steps` and `refresh_after` of jaxvisco 0.1 are deprecated aliases of
-      `GMRES`'s `backend` (``"gmres"`` is ``"jaxvisco"``), `max_steps`, `refresh_after`.
-    - `line_search`: backtracking halvings allowed per iteration (8; 0 disables it).
-    - `stall_limit`: give a step up once this many Newton iterations in a row needed
-      three or more backtracking halvings (a step of 1/8 or less) to lower the
-      residual (2; 0 never): Newton far from any solution of the step, where the time
-      loop halves the step (or the adaptive controller shrinks it) rather than spend
-      the remaining `max_iterations`. eG(2) at h = 1 on the paper scene has no solution
-      on the branch its predictor lies on (`benchmarks/eg2_arclength.py`: the branch
-      folds); there the rule cut its Newton iterations over ten steps from 259 to 122.
-      A step that creeps and then converges is given up too: eG(2)'s h = 0.5 step from
-      the same predictor converges in 9 iterations with 0 and is halved with 2.
+    - `linear_solver`: `GMRES(...)` (default) or `Direct()`. The strings `"krylov"` and
+      `"direct"` mean `GMRES()` and `Direct()`.
+    - `line_search`: backtracking halvings allowed per Newton iteration (8; 0 disables
+      the line search).
     - `reuse_limit`: keep the tangent for the next step only if this step needed at most
-      this many Newton iterations (20: only a failed step discards it). The tangent is
-      carried along the body's rigid rotation (`_tangent.schur_solve`), so it stays a good
-      preconditioner for many steps; re-forming it costs ~20 residual evaluations, a
-      Krylov vector about one (2D L-shape, refinement 4).
-    - `chord`: chord iterations allowed per step before Newton–Krylov (10; 0 disables
-      them). Where the stored tangent fits the step (its h within `reuse_band` of the
-      step's, not stale), each step
-      starts with iterations U <- U - P^{-1} R(U) on the stored factorization
-      P: one residual and one block solve each, no linearization, no Krylov vectors.
-      They go on while the residual (max norm) contracts by `chord_contraction` per
-      iteration and end the step at `rtol`; the first one that contracts less is
-      discarded, and Newton–Krylov continues from the last point that did. They are
-      counted in `Solution.chord_iterations`, not in `newton_iterations`. On the
-      multigrid path (`GMRES(preconditioner="amg")`, large 3D meshes) a step whose tangent
-      does not fit forms one at its predictor and starts with chord iterations too, and
-      Newton–Krylov keeps the tangent of its step (see `refresh_after`).
+      this many Newton iterations (20: only a failed step discards it).
+    - `chord`: chord iterations allowed per step before Newton (10; 0 disables them).
+      A chord iteration costs one residual and one solve with the stored factorization;
+      they continue while the residual contracts by `chord_contraction` per iteration
+      and are counted in `Solution.chord_iterations`.
     - `chord_contraction`: the contraction a chord iteration must reach (0.5).
-    - `reuse_band`: the stored tangent also serves a step whose h differs from the h it
-      was formed for by at most this fraction (0.25; 0: the same h only). Such a step
-      starts with chord iterations on it, and if they do not finish the step,
-      Newton–Krylov forms a tangent for the step's own h at once. Adaptive runs change h
-      often (the controller's `keep_band` holds it only for factors in [1, 1.2]).
-      Measured on the paper's L-shape, adaptive, same process, three alternating rounds
-      (band 0 -> 0.25): refinement 3 to t = 10 at rtol = atol = 1e-4, eG(1) 6.32 -> 5.03 s
-      (Newton iterations 352 -> 52, chord iterations 1556 -> 4215), eG(2) 3.63 -> 3.50 s,
-      eG(3) 4.63 -> 4.36 s; refinement 1 to t = 40, eG(1) at 1e-3 1.13 -> 0.78 s and at
-      1e-4 1.84 -> 1.79 s, eG(2) and eG(3) within noise; a band of 0.5 about the same.
-      Without the immediate re-formation eG(2) and eG(3) ran 1.4-1.9 times slower (for
-      them a tangent of another h is a poor preconditioner). The runs take the same
-      numbers of accepted steps, or one more or fewer (eG(2), r1, 1e-4: 765 against 766):
-      the controller sees estimates that differ at the Newton tolerance, so step sizes
-      and states can differ by ~1e-6 (`tests/test_solver_options.py`). Constant steps
-      never change h: unaffected.
-    - `retain`: factorizations of the condensed tangent that stay alive on the host
-      (least recently used go first; at most 2 GiB). A run needs one or two; the
-      derivative of a run raises it to what its checkpointed segments hold (`replay`).
+    - `retain`: factorizations of the condensed tangent kept alive on the host (least
+      recently used go first; at most 2 GiB).
+    - `stall_limit`: give a step up once this many Newton iterations in a row needed
+      three or more backtracking halvings (2; 0: never). The time loop then halves the
+      step (or the adaptive controller shrinks it) instead of spending the remaining
+      iterations far from a solution.
+    - `reuse_band`: a stored tangent also serves a step whose size differs from the one
+      it was formed for by at most this fraction (0.25; 0: the same size only). Where
+      its chord iterations do not finish the step, a tangent for the step's own size is
+      formed at once. Only adaptive runs change the step size often.
+    - `krylov`, `krylov_max_steps`, `refresh_after`: deprecated (jaxvisco 0.1) aliases of
+      `GMRES(backend=..., max_steps=..., refresh_after=...)`.
+
+    **Raises:**
+
+    `ValueError` for a setting out of its range (named with the value).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    tight = jv.NewtonKrylov(rtol=1e-12)
+    exact = jv.NewtonKrylov(linear_solver=jv.Direct())
+    large_3d = jv.NewtonKrylov(linear_solver=jv.GMRES(preconditioner="amg"))
+    ```
     """
 
     rtol: float = eqx.field(static=True)

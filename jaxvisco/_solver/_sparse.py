@@ -31,6 +31,7 @@ import hashlib
 import itertools
 import os
 import threading
+import warnings
 import weakref
 
 import jax
@@ -45,8 +46,15 @@ from .._export import register_check
 
 try:
     from ._ffi import _hostlu
-except ImportError:  # built without the extension: the pure_callback path
+except ImportError as _missing:  # built without the extension: the pure_callback path
     _hostlu = None
+    if os.environ.get("JAXVISCO_HOST_LU") != "callback":  # unless that path was chosen
+        warnings.warn(
+            f"jaxvisco was installed without its C++ extension ({_missing}). It runs, with the same results, but "
+            "its host sparse LU goes through jax.pure_callback, so the compilation cache cannot keep the compiled "
+            "programs (every new process compiles them again, several seconds each). Fix: install a C++ compiler "
+            "(e.g. g++) and reinstall jaxvisco (pip install --force-reinstall --no-deps .); or set "
+            "JAXVISCO_HOST_LU=callback to use this path without this warning.", RuntimeWarning)
 
 BACKENDS = ("ffi", "callback")
 # Tokens are unique in the process, not per pattern: a pattern's store made again (same

@@ -40,8 +40,9 @@ _BETA_FLOOR = 1e-10
 
 
 class AbstractTimeElement(eqx.Module):
-    """A time-element scheme: its degree `k`, its time quadrature (`_rules`) and what it
-    does at one spatial quadrature point (`point_kernel`, `point_dissipation`)."""
+    """A time element: how one step $[t_n, t_n + h]$ is formed. Its degree `k`, its
+    quadrature in time, and what it does at one spatial quadrature point; the concrete
+    ones are `cG`, `eG`, `Midpoint` and `Newmark`."""
 
     k: eqx.AbstractVar[int]
     n_quad: eqx.AbstractVar[int]
@@ -53,9 +54,20 @@ class AbstractTimeElement(eqx.Module):
 
     @abc.abstractmethod
     def point_kernel(self, material, F, G, h):
-        """**Arguments:** `F` (k+1, 3, 3) and `G` (k+1, 3, 3) or None at the time nodes,
-        step `h`. **Returns:** `(P, R_G)`: stresses P = F S (nq_t, 3, 3) at the momentum
-        quadrature points, and the weak evolution residual (k, 6) (None if elastic)."""
+        """What the time element does at one spatial quadrature point.
+
+        **Arguments:**
+
+        - `material`: the point's material.
+        - `F`: (k+1, 3, 3) deformation gradients at the time nodes.
+        - `G`: (k+1, 3, 3) internal variables at the time nodes, or None.
+        - `h`: the step.
+
+        **Returns:**
+
+        `(P, R_G)`: the stresses P = F S (nq_t, 3, 3) at the momentum quadrature points,
+        and the weak evolution residual (k, 6) (None if elastic).
+        """
 
     @abc.abstractmethod
     def point_dissipation(self, material, F, G, h):
@@ -68,6 +80,7 @@ class AbstractTimeElement(eqx.Module):
 
     @property
     def name(self) -> str:
+        """A short name, e.g. `"eG(1)"`."""
         return f"{type(self).__name__}({self.k})"
 
     def _rule_description(self):
@@ -75,9 +88,11 @@ class AbstractTimeElement(eqx.Module):
         return f"{len(pts)}-point Gauss-Legendre"
 
     def describe(self) -> str:
+        """The name and the quadrature in time, as results files record them."""
         return f"{self.name}, time quadrature: {self._rule_description()}"
 
     def matrices(self):
+        """The time-element matrices of the momentum and of the evolution quadrature."""
         (pts, wts), (gpts, gwts) = self._rules()
         return time_element_matrices(self.k, pts, wts), time_element_matrices(self.k, gpts, gwts)
 
@@ -151,11 +166,30 @@ def _gauss(n):
 
 
 class cG(AbstractStandardTimeElement):
-    """Standard continuous Galerkin time element of degree k.
+    """The continuous Galerkin time element of degree k: trial functions of degree k,
+    test functions of degree k - 1, stresses from the trial strains.
 
-    With k Gauss points (the default) it is the k-stage Gauss collocation method:
-    order 2k at the nodes, momentum conserving, energy conserving only for quadratic H.
-    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points (>= k).
+    With k Gauss points (the default) it is the k-stage Gauss collocation method: order
+    2k at the time nodes, momentum-conserving, symplectic for elastic bodies, but
+    energy-conserving only for quadratic energies; cG(1) is the implicit midpoint rule.
+    With large steps its energy can grow (see `eG`).
+
+    **Arguments:**
+
+    - `k`: the polynomial degree (>= 1).
+    - `quadrature`: the number of Gauss–Legendre points in time (>= k; default k).
+
+    **Raises:**
+
+    `ValueError` for a degree below 1 or fewer points than `k`.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    integrator = jv.cG(2)
+    ```
     """
 
     k: int = eqx.field(static=True)
@@ -170,17 +204,35 @@ class cG(AbstractStandardTimeElement):
 
 
 class eG(AbstractTimeElement):
-    """Enhanced, energy-consistent Galerkin time element of degree k: assumed strains
-    interpolated over the time nodes plus an algorithmic stress, so that
-    $H_{n+1} - H_n = -D_n$ with $D_n \\ge 0$ holds exactly for every step.
-    **Arguments:** `k` >= 1; `quadrature`: number of Gauss–Legendre points of the
-    momentum equations and the energy terms (>= k; k by default). The flow rule is
-    collocated at the k Gauss points whatever `quadrature` is, so $D_n \\ge 0$ holds for
-    every choice. With more points than k, angular momentum is no longer conserved
-    exactly (the test functions interpolate the trajectory at the k Gauss points only):
-    on the paper's L-shape at h = 1, eG(2, quadrature=4) takes every step without
-    halving (1-4 Newton iterations against 25-31 and a halving per step with 2 points)
-    but moves the angular momentum by up to 3e-4 of it per step."""
+    r"""The enhanced, energy-consistent Galerkin time element of degree k (Groß &
+    Betsch): stresses at assumed strains interpolated over the time nodes plus an
+    algorithmic stress, so that $H_{n+1} - H_n = W_n - D_n$ with $D_n \ge 0$ holds for
+    every step size (to the Newton tolerance). Order 2k at the time nodes; linear and
+    angular momentum are conserved for free bodies. eG(1) is the midpoint rule with a
+    discrete-gradient stress.
+
+    **Arguments:**
+
+    - `k`: the polynomial degree (>= 1).
+    - `quadrature`: the number of Gauss–Legendre points in time of the momentum
+      equations and the energy terms (>= k; default k). The flow rule stays collocated
+      at the k Gauss points, so $D_n \ge 0$ holds for every choice; with more points
+      than k angular momentum is no longer conserved exactly. `eG(2, quadrature=4)`
+      converges at steps longer than the body's vibration periods, where eG(2) halves
+      its steps (see the FAQ).
+
+    **Raises:**
+
+    `ValueError` for a degree below 1 or fewer points than `k`.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    integrator = jv.eG(1)
+    ```
+    """
 
     k: int = eqx.field(static=True)
     n_quad: int = eqx.field(static=True)
@@ -209,12 +261,8 @@ class eG(AbstractTimeElement):
     def point_kernel_and_dissipation(self, material, F, G, h):
         """`point_kernel` and `point_dissipation` from one evaluation of the enhanced terms
         (G not None): the Newton loop's residual then carries the step's dissipation, and
-        the compiled time loop holds no second copy of the point kernel for it. Measured
-        (session 33, alternating runs): paper scene eG(1), XLA compile of the loop
-        5.97 / 6.25 / 6.23 -> 5.65 / 6.09 / 5.69 s, 14 655 -> 13 752 instructions; 2D r4
-        lumped, h = 0.1, every step saved: eG(1) 22.4 / 20.6 -> 20.3 / 18.9 ms per step,
-        eG(2) 33.3 / 32.1 -> 27.7 / 28.4 ms (the step no longer evaluates its kernel once
-        more for D_n)."""
+        the compiled time loop holds no second copy of the point kernel for it (shorter
+        compiles, faster steps: measured on the internals page)."""
         e = self._enhanced_terms(material, F, G)
         P, R_G = self._kernel(material, F, G, h, e)
         return P, R_G, _dissipation(e)
@@ -286,7 +334,7 @@ class eG(AbstractTimeElement):
         """$-\\int Y : \\Gamma_h' d\\alpha$ with the algorithmic driving force
         $Y = \\partial_\\Gamma\\Psi(\\bar C, \\Gamma_h) + Y_{alg}$, which closes the discrete
         energy balance exactly. The flow rule is collocated at the Gauss points with the
-        same $Y$ (`_rules`: the k-point rule whatever the momentum quadrature), so this
+        same $Y$ (the k-point rule whatever the momentum quadrature), so this
         equals $h\\sum_l w_l \\operatorname{tr}(M_l\\,\\mathbb{V}^{-1}:M_l) \\ge 0$,
         $M_l = -2Y_l\\Gamma_l$. Until the two rules were separated, more momentum points
         than k made the weak flow rule non-collocated and the sign free: drawn point
@@ -303,7 +351,16 @@ def _dissipation(e):
 
 
 class Midpoint(AbstractStandardTimeElement):
-    """The implicit midpoint rule: cG(1) with one Gauss point."""
+    """The implicit midpoint rule: cG(1) with one Gauss point (for comparison).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    integrator = jv.Midpoint()
+    ```
+    """
 
     k: int = eqx.field(static=True, default=1)
     n_quad: int = eqx.field(static=True, default=1)
@@ -318,8 +375,17 @@ class Midpoint(AbstractStandardTimeElement):
 
 
 class Newmark(AbstractStandardTimeElement):
-    """Average-acceleration Newmark (trapezoidal rule on positions and momenta), the
-    internal variable advanced by the midpoint rule."""
+    """Average-acceleration Newmark (the trapezoidal rule on positions and momenta), the
+    internal variable advanced by the midpoint rule (for comparison).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    integrator = jv.Newmark()
+    ```
+    """
 
     k: int = eqx.field(static=True, default=1)
     n_quad: int = eqx.field(static=True, default=2)

@@ -26,22 +26,54 @@ share there. Inputs must be placed with `jax.make_array_from_process_local_data`
 host passes its own rows) and results read back per host (`addressable_shards`).
 """
 
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 
-def sharded_map(fn: Callable, *batch, devices: Optional[list] = None, vectorize: bool = False):
-    """`fn` over a batch, split evenly over `devices` (default: all).
+def sharded_map(fn: Callable, *batch, devices: Optional[list] = None, vectorize: bool = False) -> Any:
+    """Map `fn` over a batch, split evenly over `devices` (default: all devices; with
+    `jax.distributed.initialize()` in every process, those of all hosts).
 
-    **Arguments:** `fn` maps unbatched arrays (or pytrees) to a pytree of arrays;
-    `batch`: arrays with a leading batch axis whose length is a multiple of the number
-    of devices; `vectorize`: `False` (default) runs each device's share one member after
-    the other (`jax.lax.map`), `True` advances it together (`jax.vmap`; see the module
-    docstring for why that costs more with the Newton-Krylov solver on a CPU).
-    **Returns:** the stacked outputs, sharded along the batch axis.
+    **Arguments:**
+
+    - `fn`: maps unbatched arrays (or pytrees) to a pytree of arrays, e.g. a function
+      that builds a scene from its arguments and returns a few numbers of its run.
+    - `*batch`: arrays with a leading batch axis whose length is a multiple of the number
+      of devices.
+    - `devices`: the devices to use (default `jax.devices()`).
+    - `vectorize`: False (default) runs each device's share one member after the other
+      (`jax.lax.map`); True advances it together (`jax.vmap`), which on a CPU makes every
+      member pay for every branch of the Newton solver (several times slower; the user
+      guide's page on batches has the measurement).
+
+    **Returns:**
+
+    The stacked outputs, sharded along the batch axis.
+
+    **Raises:**
+
+    `ValueError` for batch inputs of different lengths or a length that is not a
+    multiple of the number of devices; `TypeError` for a `vectorize` that is not a bool.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import jaxvisco as jv
+
+    scene = jv.scenes.lshape()
+
+    def dissipated(eta_dev):
+        s = jv.with_parameters(scene, {"eta_dev": eta_dev})
+        return jv.simulate(s, jv.eG(1), t1=0.3, dt0=0.1).dissipated[-1]
+
+    out = jv.sharded_map(dissipated, jnp.array([2e4, 5e4]))
+    ```
     """
     if not isinstance(vectorize, bool):
         raise TypeError(f"vectorize must be True or False, got {vectorize!r}.")

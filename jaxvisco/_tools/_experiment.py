@@ -18,9 +18,23 @@ from .._time_element._time_element import AbstractTimeElement
 from ._observe import AbstractObservable
 
 
-def read_csv(path):
-    """A data file: a header row of column names, then rows of numbers; the first column
-    is time. **Returns:** (names, (rows, columns) float64 array)."""
+def read_csv(path: str | os.PathLike) -> tuple[list, np.ndarray]:
+    """Read a data file: a header row of column names, then rows of numbers, the first
+    column time; lines starting with `#` are comments.
+
+    **Arguments:**
+
+    - `path`: the CSV file.
+
+    **Returns:**
+
+    `(names, values)`: the column names and a `(rows, columns)` float64 array.
+
+    **Raises:**
+
+    `ValueError` for a file without a header and a row, a row that holds anything but
+    numbers, or rows of another length than the header.
+    """
     with open(path, newline="") as f:
         rows = [r for r in csv.reader(f) if r and not r[0].lstrip().startswith("#")]
     if len(rows) < 2:
@@ -37,21 +51,50 @@ def read_csv(path):
 
 class Experiment(eqx.Module):
     """One test of a material: a scene run with a time element, what is measured in it and
-    the measured data.
+    the measured data. `identify` fits parameters to one or several of them.
 
     **Arguments:**
-    - `scene`, `integrator`: the test's `Scene` and time element.
-    - `times`: the data's sample times `(m,)` (the run saves its frames there,
-      `SaveAt(ts)`), within ``[t0, t1]``.
-    - `data`: the measurements `(m, c)`: one column per observed quantity.
-    - `observe`: the observables (`ReactionForce`, `Displacement`, `Extensometer`,
-      `Quantity`, `Custom`), whose columns in order make up the c columns of `data`.
-    - `sigma`: the noise level (standard deviation) of each column `(c,)` or one number:
-      residuals are divided by it. None: each column is divided by its own root mean
-      square (its scale; the fit then estimates the noise level, see `identify`).
-    - `t0` (default 0), `t1` (default the last sample time), `dt0`, `stepsize_controller`,
-      `solver`: the run, as in `simulate`.
-    - `name`: for reports and plots.
+
+    - `scene`: the test's `Scene` (specimen, supports, loads, material).
+    - `integrator`: its time element, `cG(k)`, `eG(k)`, `Midpoint()` or `Newmark()`.
+    - `times`: the data's sample times `(m,)`, non-decreasing, within `[t0, t1]`; the
+      run saves its frames there (`SaveAt(ts)`).
+    - `data`: the measurements `(m, c)` (or `(m,)` for one column): one column per
+      observed quantity.
+    - `observe`: an observable or a list of them (`ReactionForce`, `Displacement`,
+      `Extensometer`, `Quantity`, `Custom`), whose columns in order make up the `c`
+      columns of `data`.
+    - `sigma`: the noise level (standard deviation) of each column, `(c,)` or one number:
+      residuals are divided by it. None (default): each column is divided by its own
+      root mean square, and `identify` estimates the noise level from the residuals.
+    - `t0` (default 0), `t1` (default the last sample time), `dt0`,
+      `stepsize_controller`: the run's times and steps, as in `simulate`.
+    - `root_finder`: the Newton solver, as in `simulate`; default
+      `NewtonKrylov(rtol=1e-11)`, a decade tighter than `simulate`'s, so that at a fit's
+      optimum the residuals are the data's misfit rather than Newton's tolerance.
+    - `name`: the experiment's name in reports and plots (distinct within a fit).
+
+    **Raises:**
+
+    `TypeError` for a scene, integrator or observable of the wrong kind; `ValueError`
+    for times that are not finite and non-decreasing or outside `[t0, t1]`, data of
+    the wrong shape or not finite, or a `sigma` that is not positive.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    import jaxvisco as jv
+
+    test = jv.scenes.specimen("relaxation", elements=(2, 1, 1), t1=0.6)
+    times = np.linspace(0.0, 0.6, 7)
+    force = np.zeros((7, 1))                       # the load cell's record
+    e = jv.Experiment(test.scene, jv.eG(2), times, force, jv.ReactionForce(test.grip, "x"),
+                      dt0=test.dt0, name="relaxation")
+    print(e.labels)                                # ['force']
+    ```
     """
 
     scene: Scene
@@ -64,11 +107,11 @@ class Experiment(eqx.Module):
     t1: float = eqx.field(static=True)
     dt0: Optional[float] = eqx.field(static=True)
     stepsize_controller: Optional[AbstractStepSizeController]
-    solver: NewtonKrylov
+    root_finder: NewtonKrylov
     name: str = eqx.field(static=True)
 
     def __init__(self, scene, integrator, times, data, observe, sigma=None, *, t0=0.0, t1=None, dt0=None,
-                 stepsize_controller=None, solver=None, name="experiment"):
+                 stepsize_controller=None, root_finder=None, name="experiment"):
         if not isinstance(scene, Scene):
             raise TypeError(f"Experiment {name!r}: scene must be a Scene, got {type(scene).__name__}.")
         if not isinstance(integrator, AbstractTimeElement):
@@ -103,14 +146,27 @@ class Experiment(eqx.Module):
         self.t0, self.t1 = float(t0), t1
         self.dt0 = None if dt0 is None else float(dt0)
         self.stepsize_controller = stepsize_controller
-        self.solver = NewtonKrylov(rtol=1e-11) if solver is None else solver
+        self.root_finder = NewtonKrylov(rtol=1e-11) if root_finder is None else root_finder
         self.name = str(name)
 
     @classmethod
-    def from_csv(cls, scene, integrator, path, observe: dict, sigma=None, **run):
+    def from_csv(cls, scene, integrator, path, observe: dict, sigma: Optional[dict] = None, **run) -> "Experiment":
         """An experiment whose data are a CSV file (`read_csv`: time first, then named
-        columns); `observe` maps column names to observables (one column each, in the
-        order given) and `sigma`, if given, column names to noise levels."""
+        columns).
+
+        **Arguments:**
+
+        - `scene`, `integrator`: as `Experiment`.
+        - `path`: the CSV file.
+        - `observe`: column name -> observable (one column each, in the order given).
+        - `sigma`: column name -> noise level (default: none known).
+        - `**run`: `t0`, `t1`, `dt0`, `stepsize_controller`, `root_finder`, `name` (default:
+          the file's name), as `Experiment`.
+
+        **Raises:**
+
+        `ValueError` for a column the file lacks, and as `read_csv` and `Experiment`.
+        """
         names, values = read_csv(path)
         missing = [k for k in observe if k not in names[1:]]
         if missing:
@@ -122,22 +178,25 @@ class Experiment(eqx.Module):
 
     @property
     def labels(self) -> Sequence[str]:
+        """The names of the data's columns, from the observables."""
         return [lab for o in self.observe for lab in o.labels]
 
-    def run(self, scene=None):
-        """The test's run (of `scene`, default its own), frames at the sample times."""
+    def run(self, scene: Optional[Scene] = None):
+        """The test's run (of `scene`, default its own) as a `Solution`, with frames at the
+        sample times; a run that fails returns with `status == "failed"`."""
         reactions = any(o.needs_reactions for o in self.observe)
         return simulate(self.scene if scene is None else scene, self.integrator, self.t0, self.t1, self.dt0,
                         saveat=SaveAt(np.asarray(self.times), reactions=reactions),
-                        stepsize_controller=self.stepsize_controller, solver=self.solver, throw=False)
+                        stepsize_controller=self.stepsize_controller, root_finder=self.root_finder, throw=False)
 
-    def model(self, solution):
-        """What the observables read off a run `(m, c)`; a run that failed is infinite."""
+    def model(self, solution) -> jnp.ndarray:
+        """What the observables read off a run, `(m, c)`; infinite for a failed run."""
         out = jnp.concatenate([o(solution) for o in self.observe], axis=1)
         return jnp.where(solution.status_code == FAILED, jnp.inf, out)
 
-    def scale(self):
-        """What each column is divided by: `sigma`, or the data's root mean square."""
+    def scale(self) -> jnp.ndarray:
+        """What each column's residuals are divided by, `(c,)`: `sigma`, or the data's
+        root mean square."""
         if self.sigma is not None:
             return self.sigma
         rms = jnp.sqrt(jnp.mean(self.data**2, axis=0))

@@ -5,7 +5,7 @@ The data are what a laboratory measures in one or several tests of the material
 parameters any named ones (`PARAMETERS`), each positive or within bounds. The fit is
 Levenberg–Marquardt on the weighted residuals of all experiments (`least_squares`), its
 Jacobian by forward mode through the runs (one tangent solve per step and parameter,
-`_differentiable`); it reports each parameter's confidence interval, the correlations,
+`_integrate._differentiable`); it reports each parameter's confidence interval, the correlations,
 and which parameters the data do not determine. L-BFGS (optax) on the same cost is
 kept as ``method="lbfgs"``.
 """
@@ -43,14 +43,21 @@ PARAMETERS = {
     "mu_neq": lambda s: s.material.nonequilibrium.mu,
     "density": lambda s: s.density,
 }
+"""The material parameters `with_parameters` and `identify` can set, by name: `eta_dev`,
+`eta_vol` (viscosities), `lam`, `mu` (equilibrium branch), `lam_neq`, `mu_neq`
+(non-equilibrium branch) and `density`; each maps a scene to where the value sits."""
 
 
 class Identification(eqx.Module):
-    """Result of `identify`.
+    """What the deprecated form `identify(scene, integrator, observe, data, ...)` returns
+    (the current form returns a `Fit`).
 
-    **Attributes:** `params` (dict name -> fitted value), `loss` (final relative misfit),
-    `history` (loss per iteration), `params_history` (dict name -> values per
-    iteration), `converged` (bool), `iterations`, `message`.
+    **Attributes:**
+
+    - `params`: name -> fitted value.
+    - `loss`: the final relative misfit.
+    - `history`: the loss per iteration; `params_history`: name -> values per iteration.
+    - `converged`, `iterations`, `message`: how the optimization ended.
     """
 
     params: dict
@@ -62,9 +69,34 @@ class Identification(eqx.Module):
     message: str
 
 
-def with_parameters(scene, values: dict):
-    """A copy of `scene` with material parameters replaced (names in `PARAMETERS`); for a
-    scene of one material."""
+def with_parameters(scene: Scene, values: dict) -> Scene:
+    """A copy of `scene` with material parameters replaced; differentiable in the values.
+
+    **Arguments:**
+
+    - `scene`: a `Scene` of one material.
+    - `values`: name -> value, names from `PARAMETERS` (`eta_dev`, `eta_vol`, `lam`,
+      `mu`, `lam_neq`, `mu_neq`, `density`); values may be traced (`jax.grad`).
+
+    **Returns:**
+
+    The new `Scene`.
+
+    **Raises:**
+
+    `ValueError` for an unknown name, or a scene of several materials (replace a part's
+    parameters with `eqx.tree_at` on `scene.material`, whose leaves hold one value per
+    material).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    slow = jv.with_parameters(jv.scenes.lshape(), {"eta_dev": 1e5})
+    print(float(slow.material.eta_dev))
+    ```
+    """
     if getattr(scene, "cell_material", None) is not None:
         raise ValueError(f"with_parameters/identify take a scene of one material; this one has "
                          f"{int(scene.cell_material.array.max()) + 1} (Scene(material=[(material, cells), ...])). "
@@ -192,9 +224,9 @@ class _Run(eqx.Module):
     def simulate(self, scene, integrator, solver):
         if self.pid is not None:
             return simulate(scene, integrator, self.t0, self.t1, self.dt0, stepsize_controller=self.pid,
-                            saveat=self.saveat, solver=solver, throw=False)
+                            saveat=self.saveat, root_finder=solver, throw=False)
         return simulate(scene, integrator, stepsize_controller=StepTo(np.asarray(self.steps), self.max_halvings),
-                        saveat=self.saveat, solver=solver, throw=False)
+                        saveat=self.saveat, root_finder=solver, throw=False)
 
 
 class _Static(eqx.Module):
@@ -251,8 +283,25 @@ def _fwd_value_and_grad(f, z):
 
 
 class Parameter(eqx.Module):
-    """A parameter to fit: its `start` value and bounds (default positive: ``lower = 0``,
-    no upper bound; the fit then works in ``log x``)."""
+    """A parameter to fit: its start value and bounds.
+
+    **Arguments:**
+
+    - `start`: the value the fit starts from, strictly inside the bounds.
+    - `lower`, `upper`: the bounds (default: positive, `lower = 0` and no upper bound).
+
+    The fit works in an unconstrained variable: `log x` for a positive parameter, a
+    logistic function of `log x` between two positive bounds (of `x` for a box that
+    reaches zero or below).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    viscosity = jv.Parameter(6.0, lower=0.1, upper=100.0)
+    ```
+    """
 
     start: float = eqx.field(static=True)
     lower: float = eqx.field(static=True, default=0.0)
@@ -287,13 +336,23 @@ def _progress(step, cost, values):
 class Fit:
     """What `identify` found.
 
-    **Attributes:** `names`; `params` (name -> value); `intervals` (name -> (low, high),
-    at level `confidence`); `standard_errors` (name -> value); `correlation`,
-    `covariance` (p x p, in the order of `names`); `identifiable` (name -> bool: False
-    where the data do not determine it); `model` and `residuals` (experiment name ->
-    (m, c): what the fitted parameters predict, and prediction minus data); `cost`;
-    `converged`; `message`; `iterations`; `result` (the `LeastSquaresResult`);
-    `experiments`.
+    **Attributes:**
+
+    - `names`: the fitted parameters, in order.
+    - `params`: name -> fitted value.
+    - `intervals`: name -> `(low, high)`, the confidence interval at level
+      `confidence`, within the parameter's bounds.
+    - `standard_errors`: name -> standard error (`inf` where the data do not resolve it).
+    - `correlation`, `covariance`: `(p, p)` arrays in the order of `names`.
+    - `identifiable`: name -> False where the data do not determine the parameter (it
+      is seen only together with others, or its relative standard error exceeds 1).
+    - `model`, `residuals`: experiment name -> `(m, c)`: what the fitted parameters
+      predict, and prediction minus data.
+    - `cost`: half the sum of the squared weighted residuals.
+    - `converged`, `message`, `iterations`: how the fit ended.
+    - `confidence`: the level of the intervals.
+    - `result`: the `LeastSquaresResult` with every statistic.
+    - `experiments`: the experiments fitted.
     """
 
     def __init__(self, result, experiments, model):
@@ -314,7 +373,9 @@ class Fit:
         return self.result.summary()
 
     def report(self) -> dict:
-        """The fit as JSON-ready data (values, intervals, correlations, residuals)."""
+        """The fit as JSON-ready data: per parameter its value, standard error, interval
+        and identifiability; the correlations, cost and convergence; per experiment the
+        RMS of its weighted residuals and its columns."""
         return dict(parameters={n: dict(value=self.params[n], standard_error=self.standard_errors[n],
                                         interval=list(self.intervals[n]), identifiable=self.identifiable[n])
                                 for n in self.names},
@@ -324,9 +385,9 @@ class Fit:
                                                                             / np.asarray(e.scale())) ** 2)).item(),
                                               columns=list(e.labels)) for e in self.experiments})
 
-    def plot(self, path):
-        """The fit against the data, one panel per column of each experiment, with the
-        residuals below; written to `path` (PNG). **Returns:** the path."""
+    def plot(self, path: str) -> str:
+        """Draw the fit against the data, one panel per column of each experiment, with
+        the residuals below, into `path` (PNG); returns `path`."""
         import matplotlib
 
         matplotlib.use("Agg")
@@ -355,34 +416,64 @@ class Fit:
         return path
 
 
-def identify(experiments, parameters=None, *args, method="lm", max_iterations=50, confidence=0.95,
-             xtol=1e-10, ftol=1e-14, gtol=1e-10, optimizer=None, verbose=False, **kwargs):
+def identify(experiments, parameters: Optional[dict] = None, *args, method: str = "lm", max_iterations: int = 50,
+             confidence: float = 0.95, xtol: float = 1e-10, ftol: float = 1e-14, gtol: float = 1e-10,
+             optimizer=None, verbose: bool = False, **kwargs) -> "Fit":
     """Fit material parameters to experiments: what a lab measured in one or several
-    tests, fitted jointly.
+    tests, fitted jointly, with each parameter's confidence interval.
 
     **Arguments:**
-    - `experiments`: an `Experiment` or a list of them (each its scene, time element,
-      observables, data and noise level).
+
+    - `experiments`: an `Experiment` or a list of them (distinct names).
     - `parameters`: name -> start value or `Parameter(start, lower, upper)`; names from
-      `PARAMETERS` (``eta_dev``, ``eta_vol``, ``lam``, ``mu`` of the equilibrium branch,
-      ``lam_neq``, ``mu_neq`` of the non-equilibrium branch, ``density``), set in every
-      experiment's scene. A plain number is positive (fitted in ``log x``).
-    - `method`: ``"lm"`` (default: Levenberg–Marquardt with a forward-mode Jacobian) or
-      ``"lbfgs"`` (optax L-BFGS on the same cost; its statistics from the Jacobian at the
-      point it reached, after one more Levenberg–Marquardt step).
+      `PARAMETERS`, set in every experiment's scene. A plain number is a positive
+      parameter (fitted in `log x`).
+    - `method`: `"lm"` (default: Levenberg–Marquardt with a forward-mode Jacobian) or
+      `"lbfgs"` (optax L-BFGS on the same cost, its statistics from one more
+      Levenberg–Marquardt step at the point it reached).
     - `max_iterations`: residual + Jacobian evaluations (LM) or L-BFGS iterations.
-    - `confidence`: the level of the intervals; `xtol`, `ftol`, `gtol`: as `least_squares`.
+    - `confidence`: the level of the intervals (default 0.95).
+    - `xtol`, `ftol`, `gtol`: the stopping tests, as in `least_squares`.
+    - `optimizer`: with `method="lbfgs"`, an optax optimizer instead of L-BFGS.
     - `verbose`: print the cost and values after each accepted step.
 
-    Residuals are (model - data) / sigma per column. Where every experiment gives its
-    noise level (`Experiment.sigma`) the intervals use it as known; otherwise each column
-    without one is scaled by its root mean square and the noise level is estimated from
-    the residuals (Student t intervals).
+    The residuals are (model - data) / sigma per column. Where every experiment gives its
+    noise level (`Experiment.sigma`) the intervals take it as known (normal quantiles);
+    otherwise the noise level is estimated from the residuals (Student t quantiles).
 
-    jaxvisco 0.2's form ``identify(scene, integrator, observe, data, t1, dt0, initial)``
-    still works (deprecated).
+    The form of jaxvisco 0.2, `identify(scene, integrator, observe, data, t1, dt0,
+    initial)`, still works with a `DeprecationWarning` and returns an `Identification`.
 
-    **Returns:** a `Fit`.
+    **Returns:**
+
+    A `Fit`: values, intervals, standard errors, correlations, identifiability, the
+    model and residuals per experiment, `report()` and `plot()`.
+
+    **Raises:**
+
+    `TypeError` for experiments that are not `Experiment`s or positional options;
+    `ValueError` for an unknown parameter, one the scenes lack (`lam_neq`, `mu_neq` of
+    an elastic material), experiments of the same name, an unknown `method`, and as
+    `least_squares` for bad bounds or options.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    import jaxvisco as jv
+
+    test = jv.scenes.specimen("relaxation", elements=(2, 1, 1), t1=1.0, dt0=0.1)
+    times = np.linspace(0.0, 1.0, 11)
+    load_cell = jv.ReactionForce(test.grip, "x", name="force")
+    model = jv.Experiment(test.scene, jv.eG(2), times, np.zeros((11, 1)), load_cell, dt0=0.1)
+    force = model.model(model.run())            # what the test measures at eta_dev = 2
+
+    e = jv.Experiment(test.scene, jv.eG(2), times, force, load_cell, dt0=0.1, name="relaxation")
+    fit = jv.identify(e, {"eta_dev": jv.Parameter(6.0, lower=0.1, upper=100.0)})
+    print(fit.params["eta_dev"], fit.intervals["eta_dev"])
+    ```
     """
     if isinstance(experiments, Scene):
         import warnings
@@ -474,27 +565,35 @@ def _lbfgs_step(problem, bounds, opt, z, state):
     return optax.apply_updates(z, updates), state, value, grad
 
 
-def identify_batch(experiments, parameters, data, *, devices=None, vectorize=False, max_iterations=50,
-                   confidence=0.95, xtol=1e-10, ftol=1e-14, gtol=1e-10):
-    """Many fits of the same experiments at once: one per member of a batch of data sets
-    (noise seeds, specimens), mapped over `devices` (default: every device of every
-    process, `sharded_map`) by Levenberg–Marquardt.
+def identify_batch(experiments, parameters: dict, data, *, devices=None, vectorize: bool = False,
+                   max_iterations: int = 50, confidence: float = 0.95, xtol: float = 1e-10, ftol: float = 1e-14,
+                   gtol: float = 1e-10):
+    """Many fits of the same experiments at once, one per data set of a batch (noise
+    seeds, specimens), by Levenberg–Marquardt, spread over devices and processes.
 
     **Arguments:**
+
     - `experiments`, `parameters`: as `identify` (the experiments' own data are replaced).
-    - `data`: one array per experiment, each `(B, m, c)`: member b's data; B a multiple of
-      the number of devices.
+    - `data`: one array per experiment, each `(B, m, c)`: member b's data; `B` a multiple
+      of the number of devices.
+    - `devices`: the devices to spread the batch over (default: every device of every
+      process, as `sharded_map`).
     - `vectorize`: advance each device's members together (`jax.vmap`) instead of one
-      after the other (`jax.lax.map`).
+      after the other (`jax.lax.map`, the faster choice on CPUs).
     - `max_iterations`, `confidence`, `xtol`, `ftol`, `gtol`: as `identify`.
 
-    **Many processes:** start each with `jax.distributed.initialize(coordinator_address,
-    num_processes, process_id)` (or let it read a cluster's environment) and call
-    `identify_batch` with the same arguments in every process; each process fits its
-    share of the batch on its devices, and every process returns the whole batch.
+    With many processes, start each with `jax.distributed.initialize(...)` and call
+    `identify_batch` with the same arguments in every process: each fits its share of
+    the batch on its devices, and every process returns the whole batch.
 
-    **Returns:** a `LeastSquaresResult` whose fields have a leading batch axis (`values`
-    (B, p), `intervals` (B, p, 2), `identifiable` (B, p), `status_code` (B,), ...).
+    **Returns:**
+
+    A `LeastSquaresResult` whose fields have a leading batch axis: `values` `(B, p)`,
+    `intervals` `(B, p, 2)`, `identifiable` `(B, p)`, `status_code` `(B,)`, ...
+
+    **Raises:**
+
+    `ValueError` for an unknown parameter, or data of the wrong number or shape.
     """
     from jax.experimental import multihost_utils
 

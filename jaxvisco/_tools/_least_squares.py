@@ -58,9 +58,10 @@ STATUS = {
 
 
 class LeastSquaresResult(eqx.Module):
-    """A least-squares fit and its statistics (`least_squares`).
+    """A least-squares fit and its statistics, what `least_squares` (and `identify_batch`)
+    return; p parameters, m residuals.
 
-    **Fields** (p parameters, m residuals):
+    **Attributes:**
 
     - `names`: parameter names (static).
     - `values`: fitted values `(p,)`.
@@ -166,7 +167,8 @@ def least_squares(
     """Fit a few parameters to many residuals by Levenberg–Marquardt, with statistics.
 
     Minimizes $\\tfrac12\\sum_i (r_i(x)/\\sigma_i)^2$ over `x` within the bounds, in one
-    compiled program (see the module notes); vmappable over `args` (data) and `start`.
+    compiled program; vmappable over `args` (data) and `start`, so a batch of fits runs
+    as one program.
 
     **Arguments:**
 
@@ -184,15 +186,10 @@ def least_squares(
       known, the noise variance is estimated as $s^2 = 2\\,\\text{cost}/(m - p)$,
       covariance $s^2 (J^T J)^{-1}$, Student-t quantiles with m - p degrees of freedom
       (as `scipy.optimize.curve_fit`).
-    - `xtol`: stop, before evaluating it, when every component of the next step in the
-      unconstrained variables is at most `xtol`: relative changes for a positive
-      parameter (`log x`), changes of `x / |start|` (`x` if the start is 0) for a free
-      one.
+    - `xtol`: stop when every component of the next step in the unconstrained variables
+      is at most `xtol` (relative changes for a positive parameter).
     - `ftol`: stop when the Gauss–Newton decrement (the most the linear model can still
-      reduce the cost, $\\tfrac12\\|U^T r\\|^2$ with $J = U S V^T$) is at most `ftol` times
-      the cost. It is the squared distance to the linearized optimum in standard errors
-      divided by m - p: the default leaves the values about 1e-6 standard errors
-      from the optimum.
+      reduce the cost) is at most `ftol` times the cost.
     - `gtol`: stop when $\\max_j |J_j^T r| / (\\|J_j\\|\\,\\|r\\|) \\le$ `gtol` (the largest
       cosine between the residual and a Jacobian column).
     - `max_steps`: the most residual + Jacobian evaluations after the start.
@@ -207,16 +204,11 @@ def least_squares(
 
     **Returns:**
 
-    A `LeastSquaresResult`. A parameter is flagged not identifiable when
-
-    (a) it is unresolved: with $J D^{-1} = U S V^T$ the column-scaled Jacobian in the
-    unconstrained variables and $S_k \\le$ `rcond` $S_1$ its null directions, these would
-    dominate the parameter's variance even at the floor, $\\sum_{k\\,\\text{null}}
-    V_{ik}^2 / (\\text{rcond}\\, S_1)^2 > \\sum_{k\\,\\text{resolved}} V_{ik}^2 / S_k^2$ (the
-    data see it only in combination with others, or not at all); its standard error is
-    then `inf` and its interval the whole range its bounds allow; or
-
-    (b) its relative standard error exceeds `max_relative_error`.
+    A `LeastSquaresResult`. A parameter is flagged not identifiable when a null
+    direction of the column-scaled Jacobian (singular values below `rcond` times the
+    largest) dominates its variance, so that the data see it only together with others
+    or not at all (its standard error is then `inf` and its interval the whole range its
+    bounds allow), or when its relative standard error exceeds `max_relative_error`.
 
     **Raises:**
 
@@ -228,6 +220,11 @@ def least_squares(
     **Example:**
 
     ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import jaxvisco as jv
+
     def residual(x, data):
         t, y = data
         return x[0] * jnp.exp(-t / x[1]) + x[2] - y

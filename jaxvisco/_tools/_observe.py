@@ -26,7 +26,14 @@ def _component(component, where):
 
 
 class AbstractObservable(eqx.Module):
-    """A measured quantity as a function of a run."""
+    """A measured quantity as a function of a run: the base of `ReactionForce`,
+    `Displacement`, `Extensometer`, `Quantity` and `Custom`.
+
+    An observable is called with a `Solution` whose frames are the data's sample times
+    and returns an array `(frames, columns)`; `columns` says how many columns of data
+    it explains and `labels` names them. A subclass sets `needs_reactions = True` when
+    it reads `Solution.reaction`.
+    """
 
     needs_reactions = False  # whether the run must save the supports' forces
 
@@ -40,16 +47,37 @@ class AbstractObservable(eqx.Module):
         """How many columns of data it explains."""
 
     @property
-    def labels(self):
+    def labels(self) -> list:
+        """The names of its columns (for reports and plots)."""
         return [f"{type(self).__name__}[{i}]" for i in range(self.columns)]
 
 
 class ReactionForce(AbstractObservable):
-    """A load cell: the resultant force the supports exert on the node group `nodes`
-    (indices) in direction `component` (0, 1, 2 or "x", "y", "z"), one column: the
-    time element's reaction at each sample time, a polynomial of degree k-1 within a
-    step. With eG(1) that is the mean over the step, first order in h; use k >= 2 where
-    forces are fitted."""
+    """A load cell: the resultant force the supports exert on a group of held nodes in one
+    direction, one column: the time element's reaction at each sample time
+    (`Solution.reaction`), a polynomial of degree k-1 within a step. With eG(1) that is
+    the mean over the step, first order in the step size; use k >= 2 where forces are
+    fitted. Its run saves the reactions (`SaveAt(reactions=True)`).
+
+    **Arguments:**
+
+    - `nodes`: the node indices (or a boolean mask of the nodes), e.g. a grip's face.
+    - `component`: the direction, `0`, `1`, `2` or `"x"`, `"y"`, `"z"`.
+    - `name`: the column's name (default `"force"`).
+
+    **Raises:**
+
+    `ValueError` for an empty or non-integer node list, or an unknown component.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    test = jv.scenes.specimen("relaxation")
+    load_cell = jv.ReactionForce(test.grip, "x")
+    ```
+    """
 
     nodes: tuple = eqx.field(static=True)
     component: int = eqx.field(static=True)
@@ -78,9 +106,31 @@ class ReactionForce(AbstractObservable):
 
 
 class Displacement(AbstractObservable):
-    """Markers or a DIC grid: the displacement of material points (reference
-    coordinates `points`, (k, dim), anywhere in the body) in direction `component`
-    (None: every component), k (or k * dim) columns, point by point."""
+    """Markers or a DIC grid: the displacements of material points anywhere in the body
+    (not only at nodes), read through the shape functions of the element holding each.
+
+    **Arguments:**
+
+    - `mesh`: the body's `Mesh`.
+    - `points`: the points' reference coordinates, `(k, dim)`.
+    - `component`: one direction (`0`, `1`, `2` or `"x"`, `"y"`, `"z"`): `k` columns;
+      None (default): every component, `k * dim` columns, point by point.
+    - `name`: the columns' name stem (default `"u"`).
+
+    **Raises:**
+
+    `ValueError` for points outside the body or an unknown component (as `Probe`).
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    mesh = jv.box(4, 1, 1, 40.0, 10.0, 10.0)
+    markers = jv.Displacement(mesh, [[10.0, 5.0, 5.0], [30.0, 5.0, 5.0]], "x")
+    print(markers.columns)                         # 2
+    ```
+    """
 
     probe: Probe
     component: object = eqx.field(static=True)
@@ -111,8 +161,19 @@ class Displacement(AbstractObservable):
 
 
 class Extensometer(AbstractObservable):
-    """An extensometer: the change of the distance between two material points (their
-    reference coordinates `a`, `b`), one column."""
+    """An extensometer: the change of the distance between two material points, one
+    column.
+
+    **Arguments:**
+
+    - `mesh`: the body's `Mesh`.
+    - `a`, `b`: the reference coordinates of the gauge's two points.
+    - `name`: the column's name (default `"elongation"`).
+
+    **Raises:**
+
+    `ValueError` for a point outside the body.
+    """
 
     probe: Probe
     name: str = eqx.field(static=True, default="elongation")
@@ -136,9 +197,18 @@ class Extensometer(AbstractObservable):
 
 
 class Quantity(AbstractObservable):
-    """A field of the run's frames by name (``"free_energy"``, ``"dissipated"``,
-    ``"energy"``, ``"kinetic"``, ``"external_work"``, ...), one column; not what a lab
-    measures, but what a study of the scheme may fit."""
+    """A diagnostic of the run's frames by name, one column: not what a lab measures, but
+    what a study of the scheme may fit.
+
+    **Arguments:**
+
+    - `field`: `"energy"`, `"kinetic"`, `"free_energy"`, `"dissipated"`,
+      `"dissipation_rate"` or `"external_work"`.
+
+    **Raises:**
+
+    `ValueError` for another name.
+    """
 
     field: str = eqx.field(static=True)
     _FIELDS = ("energy", "kinetic", "free_energy", "dissipated", "dissipation_rate", "external_work")
@@ -161,7 +231,26 @@ class Quantity(AbstractObservable):
 
 
 class Custom(AbstractObservable):
-    """Any function `fn(solution) -> (frames, n)` array of `n` columns (`n` given)."""
+    """Any function of the run.
+
+    **Arguments:**
+
+    - `fn`: `fn(solution) -> (frames, n)` array (or `(frames,)` for one column),
+      traceable by JAX.
+    - `n`: how many columns it returns (default 1).
+
+    **Raises:**
+
+    `TypeError` when `fn` is not callable.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    tip_height = jv.Custom(lambda sol: sol.x[:, 0, 1])
+    ```
+    """
 
     fn: Callable = eqx.field(static=True)
     n: int = eqx.field(static=True)

@@ -27,22 +27,23 @@ from .._scene import Scene, State
 
 
 class SemiDiscrete:
-    """The semi-discrete ODE of a scene; build it with `semidiscrete(scene)`.
+    """The semi-discrete ODE of a scene, $y' = f(t, y)$ with $y = (x, p, \\Gamma)$
+    flattened, for other ODE solvers (scipy's `solve_ivp`, diffrax); build it with
+    `semidiscrete(scene)`.
 
     **Attributes and methods:**
-    - `y0`: the initial state, flattened (numpy array of length `n`).
-    - `rhs(t, y)`: jitted right-hand side (JAX arrays in and out).
-    - `vector_field(t, y, args)`: the same, un-jitted, for diffrax's `ODETerm`; compile
-      the solve with jaxvisco's XLA options (``jax.jit(solve,
-      compiler_options=jaxvisco.compiler_options())``): with XLA's defaults the
-      right-hand side costs 2.8-4x as much (`compiler_options`).
+
+    - `y0`: the initial state, flattened (a numpy array of length `n`).
+    - `rhs(t, y)`: the jitted right-hand side (JAX arrays in and out).
+    - `vector_field(t, y, args)`: the same, not jitted, for diffrax's `ODETerm`; compile
+      the solve with `jax.jit(solve, compiler_options=jaxvisco.compiler_options())`.
     - `fun(t, y)`, `jac(t, y)`: numpy right-hand side and scipy CSC Jacobian, for
-      `scipy.integrate.solve_ivp(..., jac=ode.jac, jac_sparsity=ode.sparsity)`.
-    - `jac_values(t, y)`: jitted values of the Jacobian in the order of `rows`, `cols`
-      (duplicates summed when assembled).
+      `scipy.integrate.solve_ivp(..., jac=ode.jac, jac_sparsity=ode.sparsity)` (the
+      Jacobian needs `Scene(mass="lumped")`).
+    - `jac_values(t, y)`: the jitted values of the Jacobian in the order of `rows`,
+      `cols` (duplicates summed when assembled).
     - `sparsity`: the CSC pattern (ones).
-    - `unpack(y) -> State`, `pack(state) -> y`, `energy(y)` (H, jitted),
-      `dissipation_rate(y)` (jitted).
+    - `unpack(y)` (a `State`), `pack(state)`, `energy(y)` (H), `dissipation_rate(y)`.
     """
 
     def __init__(self, scene: Scene):
@@ -127,7 +128,31 @@ class SemiDiscrete:
 
 
 def semidiscrete(scene: Scene) -> SemiDiscrete:
-    """The semi-discrete ODE y' = f(t, y), y = (x, p, Γ), of a scene (see `SemiDiscrete`)."""
+    """The semi-discrete ODE $y' = f(t, y)$, $y = (x, p, \\Gamma)$, of a scene.
+
+    **Arguments:**
+
+    - `scene`: the `Scene`.
+
+    **Returns:**
+
+    A `SemiDiscrete`.
+
+    **Raises:**
+
+    `TypeError` for anything but a `Scene`.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jaxvisco as jv
+
+    ode = jv.semidiscrete(jv.scenes.lshape())
+    dy = ode.fun(0.0, ode.y0)   # numpy in, numpy out
+    ```
+    """
     return SemiDiscrete(scene)
 
 

@@ -7,32 +7,63 @@ import numpy as np
 
 from .._integrate._saveat import SaveAt
 from .._integrate._simulate import simulate
-from .._integrate._solution import SolverError
+from .._integrate._solution import Solution, SolverError
 from .._integrate._stepsize import PIDController
 from .._io import ResultsWriter, read_restart
 from .._io._layout import committed
 from .._io._read import open_results
+from .._scene import Scene
 from .._time_element._estimate import largest_strain
+from .._time_element._time_element import AbstractTimeElement
 
 
-def resume(path, scene, integrator, t1=None, dt0=None, append=False, throw=True, **kwargs):
-    """Continue the run saved in the results file `path` up to `t1`.
+def resume(path: str | os.PathLike, scene: Scene, integrator: AbstractTimeElement, t1: float | None = None,
+           dt0: float | None = None, append: bool = False, throw: bool = True, **kwargs) -> Solution:
+    """Continue the run saved in a results file up to `t1`.
 
-    Starts `simulate(scene, integrator, t0, t1, dt0, ...)` at the file's last committed
-    frame with its verified restart state (full internal variable) and predictor
+    Runs `simulate(scene, integrator, t0, t1, dt0, ...)` from the file's last committed
+    frame, with its verified restart state (full internal variable) and predictor
     velocity, so that a run split in two repeats the uninterrupted run (exactly with
-    ``NewtonKrylov(linear_solver="direct")``; with the default Krylov solver to the
-    Newton tolerance, because the reused tangent that preconditions it is not stored).
-    `scene` and `integrator` must be those of the saved run (the file stores their
-    parameters, not the objects); `dt0` and the other keywords (`stepsize_controller`,
-    `saveat`, `solver`, ...) go to `simulate` (a `Schedule` is in absolute times; a
-    `PIDController` continues with the largest strain of the file's frames as its
-    `strain_scale`).
-    `append=True` also appends the new frames and steps to the file (cumulative
-    dissipation and external work continue) and sets its status.
+    `NewtonKrylov(linear_solver=Direct())`; with the default GMRES to the Newton
+    tolerance, because the reused tangent that preconditions it is not stored).
 
-    **Returns:** the `Solution` from the file's last frame on (its `dissipated` and
-    `external_work` count from that frame; add `read_restart(path).dissipated`).
+    **Arguments:**
+
+    - `path`: the `.h5` results file.
+    - `scene`, `integrator`: those of the saved run (the file stores their parameters,
+      not the objects).
+    - `t1`: the time to continue to.
+    - `dt0`: as in `simulate` (a `Schedule` is in absolute times).
+    - `append`: also append the new frames and steps to the file (cumulative
+      dissipation and external work continue) and set its status.
+    - `throw`: raise `SolverError` when a step fails (default).
+    - `**kwargs`: `simulate`'s other keywords (`stepsize_controller`, `saveat`,
+      `root_finder`, ...). A `PIDController` continues with the largest strain of the
+      file's frames as its `strain_scale`.
+
+    **Returns:**
+
+    The `Solution` from the file's last frame on (its `dissipated` and `external_work`
+    count from that frame; add `read_restart(path).dissipated`).
+
+    **Raises:**
+
+    `ValueError` for a file that does not fit the scene or ends at or after `t1`;
+    `TypeError` for `t0`, `initial_state` or `initial_velocity` (the file sets them);
+    `SolverError` as `simulate`.
+
+    **Example:**
+
+    ```python
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jaxvisco as jv
+
+    scene = jv.scenes.lshape()
+    first = jv.simulate(scene, jv.eG(1), t1=0.3, dt0=0.1, saveat=jv.SaveAt(gamma=True))
+    jv.save(first, scene, "first.h5", overwrite=True)   # with the internal variable
+    more = jv.resume("first.h5", scene, jv.eG(1), t1=0.6, dt0=0.1, append=True)
+    ```
     """
     if "t_end" in kwargs:  # jaxvisco 0.1's name (simulate translates dt= and the others)
         warnings.warn("resume(): t_end= is deprecated, use t1=.", DeprecationWarning, stacklevel=2)

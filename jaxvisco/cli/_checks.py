@@ -1,6 +1,7 @@
 """Checks on a finished run: `energy_warning`, the warning that an integrator created
 energy (the energy balance ``H + dissipated - external work`` rose), and `_warn_energy`,
-which prints it for a results file's data.
+which prints it for a results file's data; `print_notes` prints the deprecation notes
+of a command's options and scene file.
 """
 
 import sys
@@ -46,3 +47,10 @@ def _warn_energy(r, label):
                          label)
     if msg is not None:
         print(f"jaxvisco: warning: {msg}", file=sys.stderr, flush=True)
+
+
+def print_notes(args):
+    """Print the notes on deprecated names that the options (and scene file) of `args`
+    used, one `jaxvisco: warning:` line each (once the options were accepted)."""
+    for note in getattr(args, "deprecated", None) or ():
+        print(f"jaxvisco: warning: {note}.", file=sys.stderr, flush=True)

@@ -66,7 +66,7 @@ def run_chunked(scene, integrator, steps, chunk=50, commit_every=5.0, save_every
         m = min(m, n - i)
         t_call = time.perf_counter()
         sol = jv.simulate(scene, integrator, stepsize_controller=jv.StepTo(ts[i:i + m + 1], max_halvings=max_halvings),
-                          saveat=jv.SaveAt(every=save_every, gamma=True), solver=solver, initial_state=state,
+                          saveat=jv.SaveAt(every=save_every, gamma=True), root_finder=solver, initial_state=state,
                           throw=False, initial_velocity=v, max_steps=chunk)
         per_step = (time.perf_counter() - t_call) / m  # the first call also compiles: an overestimate
         ns, its = _commit(writer, sol, save_gamma)
@@ -107,7 +107,7 @@ def run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=None, chu
         print(f"{label}: adaptive steps (rtol = {float(controller.rtol):g}, atol = {float(controller.atol):g}) to "
               f"t = {t_end:g}; frame 0 written, the first chunk compiles (~10-60 s)", file=stream, flush=True)
     while True:
-        sol = jv.simulate(scene, integrator, t, t_end, h, saveat=jv.SaveAt(every=save_every, gamma=True), solver=solver,
+        sol = jv.simulate(scene, integrator, t, t_end, h, saveat=jv.SaveAt(every=save_every, gamma=True), root_finder=solver,
                           initial_state=state, throw=False, initial_velocity=v, max_steps=chunk,
                           stepsize_controller=controller)
         ns, its = _commit(writer, sol, save_gamma)

@@ -36,8 +36,11 @@ A fit file (paths relative to it)::
     column = "elongation"
     extensometer = [[10.0, 5.0, 5.0], [30.0, 5.0, 5.0]]   # ... or the change of a gauge length
 
-The scene file's material gives the parameters that are not fitted; its [time] table the
-steps. Anything wrong in either file stops with one line that names it.
+Each scene file is the test's whole run, in the names of `jaxvisco run` and Python: its
+material gives the parameters that are not fitted, its [time] table the times and steps
+(t0, t1, dt0, or rtol/atol), its [solver] table the Newton solver (without one, that of
+`jv.Experiment`). Anything wrong in either file stops with one line that names it. The
+user guide's page "Identification from experiments" describes the format.
 """
 
 import json
@@ -75,7 +78,7 @@ def read_fit_file(path):
     """The experiments and parameters of a fit file (see the module docstring), checked.
     **Returns:** (experiments, parameters, fit options, output paths)."""
     import jaxvisco as jv
-    from .._integrate._schedule import Schedule
+    from .._integrate._schedule import ConstantStepSize, Schedule
     from .._integrate._stepsize import PIDController
     from .._scenefile._scenefile import read_scene_file
 
@@ -169,13 +172,15 @@ def read_fit_file(path):
                 raise ValueError(f"{where}: sigma: give a noise level for every observed column or none; "
                                  f"missing {missing[0]!r}.")
             sigma = [_number(f"{where}: sigma {columns[k]}", sigma[columns[k]]) for k in used]
-        run = dict(t1=float(sf.t_end), solver=sf.solver, name=e.get("name", os.path.splitext(e["data"])[0]))
+        run = dict(t0=float(sf.t0), t1=float(sf.t1), name=e.get("name", os.path.splitext(e["data"])[0]))
+        if "solver" in tomllib.loads(sf.source):  # else Experiment's own default (as in Python)
+            run.update(root_finder=sf.root_finder)
         if sf.rtol is not None:
-            run.update(stepsize_controller=PIDController(sf.rtol, sf.atol), dt0=sf.dt)
-        elif isinstance(sf.dt, (int, float)):
-            run.update(dt0=float(sf.dt))
+            run.update(stepsize_controller=PIDController(sf.rtol, sf.atol), dt0=sf.dt0)
+        elif isinstance(sf.dt0, (int, float)):
+            run.update(stepsize_controller=ConstantStepSize(max_halvings=sf.max_halvings), dt0=float(sf.dt0))
         else:
-            run.update(stepsize_controller=Schedule(list(sf.dt)))
+            run.update(stepsize_controller=Schedule(list(sf.dt0), max_halvings=sf.max_halvings))
         try:
             exps.append(jv.Experiment(sf.scene, sf.integrator, values[:, 0], values[:, used], observe, sigma, **run))
         except (ValueError, TypeError) as err:

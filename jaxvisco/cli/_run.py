@@ -9,9 +9,9 @@ import sys
 
 import numpy as np
 
-from ._checks import _warn_energy
+from ._checks import _warn_energy, print_notes
 from ._chunked import chunk_size, run_adaptive_chunked, run_chunked, run_into
-from ._options import _resume_args, _run_setup, _scene_file_options
+from ._options import _resume_args, _run_setup, _scene_file_options, flag, t1_name
 from ._setup import parse_schedule
 
 
@@ -24,7 +24,7 @@ def _run(args):
     if args.resume is not None:
         args, restart = _resume_args(args)
     if args.dt is not None and args.schedule is not None:
-        raise ValueError("give either --dt or --schedule, not both.")
+        raise ValueError(f"give either {flag(args, 'dt')} or --schedule, not both.")
     if args.schedule is not None and (args.rtol is not None or args.atol is not None):
         raise ValueError("--schedule fixes the steps; --rtol/--atol choose them: give one of the two.")
     sf, schedule_origin = _scene_file_options(args)
@@ -35,35 +35,38 @@ def _run(args):
     steps, t_end = _fixed_steps(args, schedule_origin, restart)
     c = chunk_size([len(steps)], target=args.chunk, save_every=args.save_every)
     ts, state0, v0 = _continued_steps(args, restart, steps, t_end)
+    print_notes(args)
     w = _open_writer(args, sf, scene, integrator, t_end, restart)
     return _write_run(args, integrator, w, lambda stop: run_chunked(
         scene, integrator, jv.StepTo(ts), chunk=c, commit_every=args.commit_every, save_every=args.save_every,
         writer=w, save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet, initial_state=state0,
         initial_velocity=v0, should_stop=stop, max_halvings=args.max_halvings,
-        solver=None if sf is None else sf.solver))
+        solver=None if sf is None else sf.root_finder))
 
 
 def _fixed_steps(args, schedule_origin, restart):
-    """The steps of a run with fixed steps (`--schedule`, else `--dt`) and its final time;
-    with `--resume` a `--t-end` past the schedule's end continues its last step."""
+    """The steps of a run with fixed steps (`--schedule`, else `--dt0`) and its final time;
+    with `--resume` a `--t1` past the schedule's end continues its last step."""
     import jaxvisco as jv
 
+    t0 = 0.0 if args.t0 is None else args.t0
     if args.schedule is not None:
         dt = parse_schedule(args.schedule)
         schedule_name = schedule_origin or f"--schedule {args.schedule!r}"
         t_end = args.t_end if args.t_end is not None else dt[-1][0]
         if t_end > dt[-1][0]:
             if restart is None:
-                raise ValueError(f"{schedule_name} ends at t = {dt[-1][0]:g}, before --t-end {t_end:g}: "
-                                 f"add a piece that reaches it, e.g. '{args.schedule},{t_end:g}:{dt[-1][1]:g}'.")
-            dt[-1] = (math.inf, dt[-1][1])  # --resume --t-end: the last step continues
+                raise ValueError(f"{schedule_name} ends at t = {dt[-1][0]:g}, before {flag(args, 't_end')} "
+                                 f"{t_end:g}: add a piece that reaches it, e.g. "
+                                 f"'{args.schedule},{t_end:g}:{dt[-1][1]:g}'.")
+            dt[-1] = (math.inf, dt[-1][1])  # --resume --t1: the last step continues
         try:
-            steps = jv.StepTo.from_schedule(0.0, t_end, dt, t1_name="t_end")
+            steps = jv.StepTo.from_schedule(t0, t_end, dt, t1_name=t1_name(args))
         except ValueError as e:
             raise ValueError(f"{schedule_name}: {e}") from None
     else:
         t_end = 1.0 if args.t_end is None else args.t_end
-        steps = jv.StepTo.from_schedule(0.0, t_end, 0.1 if args.dt is None else args.dt, t1_name="t_end")
+        steps = jv.StepTo.from_schedule(t0, t_end, 0.1 if args.dt is None else args.dt, t1_name=t1_name(args))
     return steps, t_end
 
 
@@ -75,11 +78,12 @@ def _continued_steps(args, restart, steps, t_end):
     if restart is not None:
         done = restart.n_steps
         if done >= len(steps) or restart.t >= t_end * (1 - 1e-12):
-            raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} (t_end = {t_end:.6g}); "
-                             "give a later --t-end to continue it.")
+            raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} ({t1_name(args)} = {t_end:.6g}); "
+                             f"give a later {flag(args, 't_end')} to continue it.")
         if not math.isclose(ts[done], restart.t, rel_tol=1e-9, abs_tol=1e-12):
             raise ValueError(f"{args.resume!r}: its {done} steps end at t = {restart.t:.17g}, but the stored schedule "
-                             f"puts step {done} at t = {ts[done]:.17g}; it cannot be continued with --t-end {t_end:g}.")
+                             f"puts step {done} at t = {ts[done]:.17g}; it cannot be continued with {flag(args, 't_end')} "
+                             f"{t_end:g}.")
         ts = np.concatenate([[restart.t], ts[done + 1:]])
         state0, v0 = restart.state, restart.velocity
     return ts, state0, v0
@@ -98,22 +102,25 @@ def _run_adaptive(args, sf, restart):
         raise ValueError(f"--rtol/--atol: {e}") from None
     integrator, scene = _run_setup(args, sf, restart)
     t_end = 1.0 if args.t_end is None else args.t_end
-    t0, state0, v0, dt0 = 0.0, None, None, args.dt
+    t0, state0, v0, dt0 = (0.0 if args.t0 is None else args.t0), None, None, args.dt
+    if not t_end > t0:
+        raise ValueError(f"{t1_name(args)} must be greater than t0 = {t0!r}, got {t1_name(args)} = {t_end!r}.")
     if restart is not None:
         if restart.t >= t_end * (1 - 1e-12):
-            raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} (t_end = {t_end:.6g}); "
-                             "give a later --t-end to continue it.")
+            raise ValueError(f"{args.resume!r} already reaches t = {restart.t:.6g} ({t1_name(args)} = {t_end:.6g}); "
+                             f"give a later {flag(args, 't_end')} to continue it.")
         t0, state0, v0 = restart.t, restart.state, restart.velocity
         h = last_step_size(args.resume)
         dt0 = dt0 if h is None else h
         # atol on the internal variable in units of the largest strain so far, as the
         # run's chunks carried it (`PIDController.strain_scale`): from the stored frames
         controller = controller.continued(largest_strain_in(args.resume, scene))
+    print_notes(args)
     w = _open_writer(args, sf, scene, integrator, t_end, restart)
     return _write_run(args, integrator, w, lambda stop: run_adaptive_chunked(
         scene, integrator, controller, t0, t_end, dt0=dt0, chunk=args.chunk, save_every=args.save_every, writer=w,
         save_gamma=args.save_gamma, label=integrator.name, quiet=args.quiet, initial_state=state0,
-        initial_velocity=v0, should_stop=stop, solver=None if sf is None else sf.solver))
+        initial_velocity=v0, should_stop=stop, solver=None if sf is None else sf.root_finder))
 
 
 def _write_run(args, integrator, w, go):
@@ -165,7 +172,7 @@ def _open_writer(args, sf, scene, integrator, t_end, restart):
     """The results writer of a run: a new file, or the resumed one appended to."""
     import jaxvisco as jv
 
-    params = {k: v for k, v in vars(args).items() if k != "func"}
+    params = {k: v for k, v in vars(args).items() if k not in ("func", "deprecated", "spelled")}
     params.update(t_end=t_end, **({} if sf is not None else dict(dim=scene.dim)))
     if restart is not None:
         w = jv.ResultsWriter(args.out, append=True, attrs={"parameters": params})

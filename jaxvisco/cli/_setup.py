@@ -39,35 +39,57 @@ def make_integrator(name, order=1):
     raise ValueError(f"unknown integrator {name!r}; choose cG, eG, Newmark or Midpoint.")
 
 
-def make_scene(dim=2, refinement=1, element=None, mesh=None, lam=None, mu=None, density=None, eta_dev=None,
-               eta_vol=None):
-    """The paper's L-shape (or a mesh file with the paper's material and rigid initial
-    velocity v0 = v_T + omega x X), with any parameter overridden."""
-    import jax.numpy as jnp
+def make_scene(dim=2, refinement=1, cell_type=None, mesh=None, lam=None, mu=None, density=None, eta_dev=None,
+               eta_vol=None, velocity=None, angular_velocity=None):
+    """The paper's L-shape (its material and rigid initial velocity, any parameter
+    overridden), or the body of a mesh file: its material must be given (`lam`, `mu`,
+    `density`; without `eta_dev`/`eta_vol` it is elastic) and it starts at rest unless
+    `velocity` (``"VX,VY[,VZ]"``) or `angular_velocity` (``"W"`` in 2D, ``"WX,WY,WZ"``
+    in 3D, about the origin) set it moving."""
+    import numpy as np
 
     import jaxvisco as jv
 
-    p = dict(jv.scenes.PAPER)
-    for k, v in dict(lam=lam, mu=mu, density=density, eta_dev=eta_dev, eta_vol=eta_vol).items():
-        if v is not None:
-            if not (v > 0 and math.isfinite(v)) and not (k.startswith("eta") and v == math.inf):
-                raise ValueError(f"--{k.replace('_', '-')} must be positive, got {v!r}.")
-            p[k] = v
+    given = dict(lam=lam, mu=mu, density=density, eta_dev=eta_dev, eta_vol=eta_vol)
+    for k, v in given.items():
+        if v is not None and not (v > 0 and math.isfinite(v)) and not (k.startswith("eta") and v == math.inf):
+            raise ValueError(f"--{k.replace('_', '-')} must be positive, got {v!r}.")
     if mesh is None:
+        if velocity is not None or angular_velocity is not None:
+            raise ValueError("--velocity and --angular-velocity set the initial motion of a --mesh body; the built-in "
+                             "L-shape moves as in the paper (use a scene file for another motion).")
         if dim not in (2, 3):
             raise ValueError(f"--dim must be 2 or 3, got {dim!r}.")
         if not isinstance(refinement, int) or refinement < 1:
             raise ValueError(f"--refinement must be an integer >= 1, got {refinement!r}.")
-        return jv.scenes.lshape(dim=dim, refinement=refinement, element=element, lam=p["lam"], mu=p["mu"],
+        p = dict(jv.scenes.PAPER)
+        p.update({k: v for k, v in given.items() if v is not None})
+        return jv.scenes.lshape(dim=dim, refinement=refinement, cell_type=cell_type, lam=p["lam"], mu=p["mu"],
                                 density=p["density"], eta_dev=p["eta_dev"], eta_vol=p["eta_vol"])
     m = jv.Mesh.read(mesh)
-    nh = jv.NeoHooke(lam=p["lam"], mu=p["mu"])
-    material = jv.ReeseGovindjee(nh, nh, eta_dev=p["eta_dev"], eta_vol=p["eta_vol"])
-    X = jnp.asarray(m.points)
-    vT = jnp.asarray(p["v_translation"], dtype=float)
-    w = jnp.asarray(p["omega"], dtype=float)
-    if m.dim == 2:
-        v0 = vT[:2] + w[2] * jnp.stack([-X[:, 1], X[:, 0]], axis=-1)
-    else:
-        v0 = vT + jnp.cross(w, X)
-    return jv.Scene(m, material, p["density"], velocities=v0)
+    missing = [f"--{k}" for k in ("lam", "mu", "density") if given[k] is None]
+    if missing:
+        raise ValueError(f"--mesh {mesh}: give the body's material: {', '.join(missing)} (and --eta-dev/--eta-vol "
+                         "for a viscous body; without them it is elastic), or describe the run in a scene file "
+                         "(jaxvisco scene-template).")
+    nh = jv.NeoHooke(lam=lam, mu=mu)
+    viscous = any(v is not None and math.isfinite(v) for v in (eta_dev, eta_vol))
+    inf = math.inf
+    material = jv.ReeseGovindjee(nh, nh if viscous else None, eta_dev=inf if eta_dev is None else eta_dev,
+                                 eta_vol=inf if eta_vol is None else eta_vol)
+    v0 = jv.rigid_velocity(m.points, velocity=_vector(velocity, "--velocity", m.dim),
+                           angular_velocity=_vector(angular_velocity, "--angular-velocity", 1 if m.dim == 2 else 3))
+    return jv.Scene(m, material, density, velocities=np.asarray(v0))
+
+
+def _vector(text, name, n):
+    """`text` (``"1.0,2.0"``) as `n` floats (one float for n = 1), or None."""
+    if text is None:
+        return None
+    try:
+        v = [float(a) for a in str(text).split(",")]
+    except ValueError:
+        v = []
+    if len(v) != n or not all(math.isfinite(a) for a in v):
+        raise ValueError(f"{name} must be {n} finite number{'s' if n > 1 else ''} separated by commas, got {text!r}.")
+    return v[0] if n == 1 else v

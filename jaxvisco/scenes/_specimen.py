@@ -22,9 +22,15 @@ TESTS = ("relaxation", "cyclic", "creep")
 
 
 class Specimen(NamedTuple):
-    """A specimen test (`specimen`): the `scene`, the node indices of the clamped face
-    (`clamp`) and of the grip face (`grip`), the end time `t1` and the step `dt0` the
-    test is meant to be run with."""
+    """A specimen test, what `specimen` returns.
+
+    **Attributes:**
+
+    - `scene`: the `Scene`.
+    - `clamp`, `grip`: the node indices of the clamped face (x = 0) and of the grip face
+      (x = 40 mm).
+    - `t1`, `dt0`: the end time and the step the test is meant to be run with.
+    """
 
     scene: Scene
     clamp: np.ndarray
@@ -35,21 +41,41 @@ class Specimen(NamedTuple):
 
 def specimen(test="relaxation", *, strain=0.1, ramp=0.5, t1=None, frequency=1.0, cycles=2.0, stress=0.1,
              dt0=None, elements=(8, 2, 2), **material) -> Specimen:
-    """The tensile specimen in one of three tests.
+    """The tensile specimen in one of three tests: a bar of 40 x 10 x 10 mm (units mm, s,
+    N, MPa; density in tonne / mm^3) of a soft polymer (`POLYMER`), clamped at x = 0 and
+    loaded on its grip face x = 40.
 
     **Arguments:**
+
     - `test`: ``"relaxation"`` (the grip pulled to `strain` at a constant speed over
       `ramp` seconds, then held; default to t1 = 5 s), ``"cyclic"`` (the grip moved as
       ``strain * L * sin(2 pi frequency t)`` for `cycles` periods) or ``"creep"`` (a
       nominal `stress` in MPa on the free grip face, ramped up over `ramp` seconds, then
       held; default t1 = 5 s).
-    - `elements`: elements along the length, width and height.
+    - `strain`, `ramp`, `frequency`, `cycles`, `stress`: the loading (above).
+    - `t1`: the end time (default above).
+    - `elements`: hex8 elements along the length, width and height (default (8, 2, 2)).
     - `dt0`: the time step the test is meant for (default: 0.05 s, a twentieth of a
       cycle where that is shorter).
     - material parameters (``lam``, ``mu``, ``lam_neq``, ``mu_neq``, ``eta_dev``,
       ``eta_vol``, ``density``): override `POLYMER`'s.
 
-    **Returns:** a `Specimen`.
+    **Returns:**
+
+    A `Specimen`: the scene, the clamp and grip nodes, `t1` and `dt0`.
+
+    **Raises:**
+
+    `ValueError` for an unknown test or material parameter.
+
+    **Example:**
+
+    ```python
+    import jaxvisco as jv
+
+    test = jv.scenes.specimen("cyclic", frequency=2.0, elements=(4, 1, 1))
+    print(test.t1, test.dt0, len(test.grip))       # 1.0 0.025 4
+    ```
     """
     if test not in TESTS:
         raise ValueError(f"specimen: test must be one of {TESTS}, got {test!r}.")
