@@ -2,7 +2,8 @@
 cyclic tests (grip force; in relaxation also a marker's lateral displacement), synthetic
 data from (eta_dev, eta_vol, mu_neq) = (2, 5, 2), fitted jointly by `jv.identify`.
 
-    python benchmarks/identification.py [--seeds 50] [--out identification.json]
+    python benchmarks/identification.py [--seeds 50] [--elements 8,2,2] [--k 2]
+        [--parts exact,fd,noise] [--out identification.json]
 
 Measures, in one process:
 - exact data, starts off by a factor 3 (up, down, up): errors, evaluations, the wall time
@@ -35,7 +36,8 @@ TRUTH = {"eta_dev": 2.0, "eta_vol": 5.0, "mu_neq": 2.0}
 START = {"eta_dev": 6.0, "eta_vol": 5.0 / 3.0, "mu_neq": 6.0}
 
 
-def experiments(elements=(8, 2, 2)):
+def experiments(elements=(8, 2, 2), k=2):
+    """eG(k) runs (forces of eG(1) are step means, first order in h: k = 2 by default)."""
     out = []
     for test, kw in (("relaxation", dict(t1=3.0)), ("cyclic", dict(frequency=1.0, cycles=2.0))):
         sp = jv.scenes.specimen(test, elements=elements, **kw)
@@ -44,9 +46,9 @@ def experiments(elements=(8, 2, 2)):
         if test == "relaxation":
             observe.append(jv.Displacement(sp.scene.mesh, [[20.0, 10.0, 5.0]], "y"))
         c = sum(o.columns for o in observe)
-        proto = jv.Experiment(sp.scene, jv.eG(1), times, np.zeros((len(times), c)), observe, dt0=sp.dt0, name=test)
+        proto = jv.Experiment(sp.scene, jv.eG(k), times, np.zeros((len(times), c)), observe, dt0=sp.dt0, name=test)
         data = np.asarray(jax.jit(lambda s, e=proto: e.model(e.run(s)))(jv.with_parameters(sp.scene, TRUTH)))
-        out.append(jv.Experiment(sp.scene, jv.eG(1), times, data, observe, dt0=sp.dt0, name=test))
+        out.append(jv.Experiment(sp.scene, jv.eG(k), times, data, observe, dt0=sp.dt0, name=test))
     return out
 
 
@@ -88,25 +90,46 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=50)
+    ap.add_argument("--elements", default="8,2,2", help="the specimen's elements along x, y, z")
+    ap.add_argument("--k", type=int, default=2, help="the time element eG(k)")
+    ap.add_argument("--parts", default="exact,fd,noise")
     ap.add_argument("--out", default="identification.json")
     args = ap.parse_args(argv)
     info = machine()
-    exps = experiments()
-    out = dict(machine=info, truth=TRUTH, start=START, m=int(sum(np.asarray(e.data).size for e in exps)))
+    elements = tuple(int(v) for v in args.elements.split(","))
+    parts = args.parts.split(",")
+    exps = experiments(elements, args.k)
+    out = dict(machine=info, truth=TRUTH, start=START, elements=list(elements), integrator=f"eG({args.k})",
+               m=int(sum(np.asarray(e.data).size for e in exps)))
+    if "exact" not in parts:
+        return _noise(args, exps, out) if "noise" in parts else write_json(args.out, out)
     # exact data, AD Jacobian (forward mode through the runs)
     first, t_first = fit(exps, _identify._residuals)
     second, t_second = fit(exps, _identify._residuals)
     out["exact"] = dict(errors=errors(second.values, second.names), evaluations=int(second.iterations),
                         message=second.message, first_fit_s=t_first, compiled_fit_s=t_second)
     print(out["exact"], flush=True)
-    # the same with a finite-difference Jacobian
+    if "fd" in parts:
+        _fd(exps, out, t_first, t_second)
+    if "noise" in parts:
+        return _noise(args, exps, out)
+    write_json(args.out, out)
+
+
+def _fd(exps, out, t_first, t_second):
+    """The exact-data fit with a finite-difference Jacobian."""
     _, fd_first = fit(exps, _fd_residuals)
     fd, fd_second = fit(exps, _fd_residuals)
     out["finite_differences"] = dict(errors=errors(fd.values, fd.names), evaluations=int(fd.iterations),
                                      first_fit_s=fd_first, compiled_fit_s=fd_second,
                                      ratio_compiled=fd_second / t_second, ratio_first=fd_first / t_first)
     print(out["finite_differences"], flush=True)
-    # 1 % noise, many seeds
+
+
+def _noise(args, exps, out):
+    """1 % noise, `args.seeds` seeds as one batch."""
+    from common import write_json
+
     rng = np.random.default_rng(0)
     batch = []
     for e in exps:
