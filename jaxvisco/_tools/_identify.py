@@ -12,7 +12,7 @@ kept as ``method="lbfgs"``.
 
 import functools
 import time
-from typing import Callable, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 
 import equinox as eqx
 import jax
@@ -33,6 +33,10 @@ from .._integrate._solution import FAILED
 from .._integrate._stepsize import PIDController
 from .._scene import Scene
 from .._solver._newton import NewtonKrylov
+
+if TYPE_CHECKING:  # imported where used (`_experiment` imports this module's neighbours)
+    from ._experiment import Experiment
+    from ._least_squares import LeastSquaresResult
 
 PARAMETERS = {
     "eta_dev": lambda s: s.material.eta_dev,
@@ -416,9 +420,10 @@ class Fit:
         return path
 
 
-def identify(experiments, parameters: Optional[dict] = None, *args, method: str = "lm", max_iterations: int = 50,
-             confidence: float = 0.95, xtol: float = 1e-10, ftol: float = 1e-14, gtol: float = 1e-10,
-             optimizer=None, verbose: bool = False, **kwargs) -> "Fit":
+def identify(experiments: "Experiment | Sequence[Experiment]", parameters: Optional[dict] = None, *args,
+             method: str = "lm", max_iterations: int = 50, confidence: float = 0.95, xtol: float = 1e-10,
+             ftol: float = 1e-14, gtol: float = 1e-10, optimizer: Any = None, verbose: bool = False,
+             **kwargs) -> "Fit":
     """Fit material parameters to experiments: what a lab measured in one or several
     tests, fitted jointly, with each parameter's confidence interval.
 
@@ -565,9 +570,10 @@ def _lbfgs_step(problem, bounds, opt, z, state):
     return optax.apply_updates(z, updates), state, value, grad
 
 
-def identify_batch(experiments, parameters: dict, data, *, devices=None, vectorize: bool = False,
-                   max_iterations: int = 50, confidence: float = 0.95, xtol: float = 1e-10, ftol: float = 1e-14,
-                   gtol: float = 1e-10):
+def identify_batch(experiments: "Experiment | Sequence[Experiment]", parameters: dict, data: Any, *,
+                   devices: Optional[Sequence] = None, vectorize: bool = False, max_iterations: int = 50,
+                   confidence: float = 0.95, xtol: float = 1e-10, ftol: float = 1e-14,
+                   gtol: float = 1e-10) -> "LeastSquaresResult":
     """Many fits of the same experiments at once, one per data set of a batch (noise
     seeds, specimens), by Levenberg–Marquardt, spread over devices and processes.
 

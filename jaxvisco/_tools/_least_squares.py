@@ -34,13 +34,14 @@ How it is built, and why (numbers: `benchmarks/least_squares_solver.py`, results
 Per-iteration progress reaches the host through `jax.debug.callback`.
 """
 
-from typing import Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.stats
+from jax.typing import ArrayLike
 
 from .._config import _top_level, jit
 from ._bounds import make_bounds
@@ -147,13 +148,13 @@ class LeastSquaresResult(eqx.Module):
 
 def least_squares(
     residual: Callable,
-    start,
-    args=None,
+    start: ArrayLike,
+    args: Any = None,
     *,
-    lower=None,
-    upper=None,
+    lower: Optional[ArrayLike] = None,
+    upper: Optional[ArrayLike] = None,
     names: Optional[Sequence[str]] = None,
-    sigma=None,
+    sigma: Optional[ArrayLike] = None,
     absolute_sigma: bool = False,
     xtol: float = 1e-10,
     ftol: float = 1e-14,
