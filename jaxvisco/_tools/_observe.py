@@ -52,7 +52,19 @@ class AbstractObservable(eqx.Module):
         return [f"{type(self).__name__}[{i}]" for i in range(self.columns)]
 
 
-class ReactionForce(AbstractObservable):
+class _OneColumn(AbstractObservable):
+    """An observable of one column, labelled by its `name`."""
+
+    @property
+    def columns(self):
+        return 1
+
+    @property
+    def labels(self):
+        return [self.name]
+
+
+class ReactionForce(_OneColumn):
     """A load cell: the resultant force the supports exert on a group of held nodes in one
     direction, one column: the time element's reaction at each sample time
     (`Solution.reaction`), a polynomial of degree k-1 within a step. With eG(1) that is
@@ -95,14 +107,6 @@ class ReactionForce(AbstractObservable):
 
     def __call__(self, solution):
         return solution.reaction_force(np.asarray(self.nodes), self.component)[:, None]
-
-    @property
-    def columns(self):
-        return 1
-
-    @property
-    def labels(self):
-        return [self.name]
 
 
 class Displacement(AbstractObservable):
@@ -160,7 +164,7 @@ class Displacement(AbstractObservable):
         return [f"{self.name}{i}_{axes[c]}" for i in range(self.probe.n_points) for c in range(self.probe.dim)]
 
 
-class Extensometer(AbstractObservable):
+class Extensometer(_OneColumn):
     """An extensometer: the change of the distance between two material points, one
     column.
 
@@ -186,14 +190,6 @@ class Extensometer(AbstractObservable):
         x = self.probe.positions(solution.x)  # (frames, 2, dim)
         X = self.probe.points
         return (jnp.linalg.norm(x[:, 1] - x[:, 0], axis=-1) - jnp.linalg.norm(X[1] - X[0]))[:, None]
-
-    @property
-    def columns(self):
-        return 1
-
-    @property
-    def labels(self):
-        return [self.name]
 
 
 class Quantity(AbstractObservable):
