@@ -52,7 +52,7 @@ class AbstractObservable(eqx.Module):
         return [f"{type(self).__name__}[{i}]" for i in range(self.columns)]
 
 
-class _OneColumn(AbstractObservable):
+class AbstractOneColumn(AbstractObservable):
     """An observable of one column, labelled by its `name`."""
 
     @property
@@ -64,7 +64,7 @@ class _OneColumn(AbstractObservable):
         return [self.name]
 
 
-class ReactionForce(_OneColumn):
+class ReactionForce(AbstractOneColumn):
     """A load cell: the resultant force the supports exert on a group of held nodes in one
     direction, one column: the time element's reaction at each sample time
     (`Solution.reaction`), a polynomial of degree k-1 within a step. With eG(1) that is
@@ -164,7 +164,7 @@ class Displacement(AbstractObservable):
         return [f"{self.name}{i}_{axes[c]}" for i in range(self.probe.n_points) for c in range(self.probe.dim)]
 
 
-class Extensometer(_OneColumn):
+class Extensometer(AbstractOneColumn):
     """An extensometer: the change of the distance between two material points, one
     column.
 
