@@ -177,7 +177,7 @@ def _scale(ctx, scene, R0, impulse):
     body whose predictor was good had a scale near the residual's rounding (the momenta
     and the predictor's residual small beside the forces they balance), and its steps
     converged or failed by that rounding: rejections that came and went with the
-    parameters (a specimen fitted from exact data stopped at 1e-3 off)."""
+    parameters, which made a fitted model discontinuous in them (issue #60's note)."""
     p = jnp.max(jnp.abs(ctx.state.p))
     f = jnp.maximum(jnp.max(jnp.abs(R0.x)), impulse)
     mx = jnp.max(jnp.abs(scene.disc.mass_matvec(ctx.state.x, scene.density))) / ctx.h
