@@ -2,14 +2,15 @@
 cyclic tests (grip force; in relaxation also a marker's lateral displacement), synthetic
 data from (eta_dev, eta_vol, mu_neq) = (2, 5, 2), fitted jointly by `jv.identify`.
 
-    python benchmarks/identification.py [--seeds 50] [--elements 8,2,2] [--k 2]
+    python benchmarks/identification.py [--seeds 50] [--chunk 5] [--elements 8,2,2] [--k 2]
         [--parts exact,fd,noise] [--out identification.json]
 
 Measures, in one process:
 - exact data, starts off by a factor 3 (up, down, up): errors, evaluations, the wall time
   of the first fit (compiling) and of a second one (compiled);
 - 1 % noise on every column (relative to its RMS), `--seeds` seeds fitted as one batch
-  (`jv.identify_batch`, one after the other on this machine's device): the errors, and
+  (`jv.identify_batch` on chunks of `--chunk` seeds, one after the other on this machine's
+  device; one compilation, the chunks report as they finish): the errors, and
   how often each 95 % interval holds the true value (its coverage), with a binomial 95 %
   range for that fraction;
 - the same exact-data fit with a Jacobian by forward finite differences (one more run
@@ -92,6 +93,7 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, default=50)
     ap.add_argument("--elements", default="8,2,2", help="the specimen's elements along x, y, z")
     ap.add_argument("--k", type=int, default=2, help="the time element eG(k)")
+    ap.add_argument("--chunk", type=int, default=5, help="seeds per identify_batch call")
     ap.add_argument("--parts", default="exact,fd,noise")
     ap.add_argument("--out", default="identification.json")
     args = ap.parse_args(argv)
@@ -135,16 +137,24 @@ def _noise(args, exps, out):
     for e in exps:
         d = np.asarray(e.data)
         batch.append(d[None] + 0.01 * np.sqrt(np.mean(d**2, axis=0)) * rng.standard_normal((args.seeds,) + d.shape))
+    chunks = []
     t = time.perf_counter()
-    res = jv.identify_batch(exps, START, batch)
-    jax.block_until_ready(res.values)
+    for lo in range(0, args.seeds, args.chunk):
+        part = [d[lo:lo + args.chunk] for d in batch]
+        r = jv.identify_batch(exps, START, part)
+        jax.block_until_ready(r.values)
+        chunks.append(r)
+        print(f"seeds {lo}..{lo + len(part[0]) - 1}: {time.perf_counter() - t:.1f} s", flush=True)
     t_batch = time.perf_counter() - t
+    res = jax.tree.map(lambda *xs: np.concatenate(xs) if isinstance(xs[0], (np.ndarray, jax.Array)) else xs[0],
+                       *chunks)
     names = res.names
     values, intervals = np.asarray(res.values), np.asarray(res.intervals)
     truth = np.array([TRUTH[n] for n in names])
     covered = (intervals[..., 0] <= truth) & (truth <= intervals[..., 1])
     lo, hi = scipy.stats.binom.ppf([0.025, 0.975], args.seeds, 0.95) / args.seeds
-    out["noise"] = dict(seeds=args.seeds, level=0.01, batch_s=t_batch, per_fit_s=t_batch / args.seeds,
+    out["noise"] = dict(seeds=args.seeds, chunk=args.chunk, level=0.01, batch_s=t_batch,
+                        per_fit_s=t_batch / args.seeds,
                         coverage={n: float(covered[:, i].mean()) for i, n in enumerate(names)},
                         coverage_expected_range=[float(lo), float(hi)],
                         error_mean={n: float(np.mean(values[:, i] / truth[i] - 1)) for i, n in enumerate(names)},

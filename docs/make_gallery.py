@@ -26,6 +26,7 @@ GALLERY = {
     "clamped_beam": (["--plot", "{png}"], ["--quick", "--plot", "{png}"], "{png}"),
     "lshape_3d": (["--plot", "{png}"], ["--quick", "--plot", "{png}"], "{png}"),
     "read_mesh": (["--steps", "100", "--plot", "{png}"], ["--steps", "3", "--plot", "{png}"], "{png}"),
+    "identify_viscosity": (["--out", "{dir}"], ["--quick", "--out", "{dir}"], "{dir}/identify_fit.png"),
 }
 
 

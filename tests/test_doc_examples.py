@@ -12,7 +12,8 @@ pages render runs (issue #61), so that the documentation cannot rot:
   example output); the reason is required. A `python` block that includes an example
   script (`--8<-- "examples/NAME.py"`) is run by `tests/test_examples.py` (the gallery).
 
-Every page runs in a scratch folder with copies of `examples/data` and `examples/scenes`.
+Every page runs in a scratch folder with copies of `examples/data`, `examples/scenes` and
+`examples/fit`.
 The examples share programs on purpose (the paper's L-shape, eG(1), h = 0.1, up to 8
 steps), so that the whole file compiles a few programs.
 """
@@ -81,9 +82,9 @@ def pages():
 
 @pytest.fixture
 def scratch(tmp_path, monkeypatch):
-    """A scratch folder with the example data, as the current directory; JAX's cache
+    """A scratch folder with the example data, scenes and fit files, as the current directory; JAX's cache
     settings restored afterwards (a page may turn on a cache of its own)."""
-    for sub in ("data", "scenes"):
+    for sub in ("data", "scenes", "fit"):
         shutil.copytree(os.path.join(ROOT, "examples", sub), tmp_path / "examples" / sub)
     monkeypatch.chdir(tmp_path)
     keep = {k: getattr(jax.config, k) for k in ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")}

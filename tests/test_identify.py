@@ -27,7 +27,7 @@ def test_identify_recovers_viscosities(tmp_path):
     assert max(abs(v) for v in e_clean.values()) <= 1e-6, e_clean
     assert max(abs(v) for v in e_noisy.values()) <= 0.05, e_noisy
     assert all(noisy.identifiable.values())
-    assert (tmp_path / "identify_fit.png").exists()
+    assert (tmp_path / "identify_fit.png").stat().st_size > 10_000  # the gallery's picture
 
 
 def test_identify_rejects_bad_input():

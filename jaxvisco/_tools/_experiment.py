@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._integrate._saveat import SaveAt
-from .._integrate._schedule import AbstractStepSizeController
+from .._integrate._schedule import AbstractStepSizeController, ConstantStepSize
 from .._integrate._simulate import simulate
 from .._integrate._solution import FAILED
 from .._scene import Scene
@@ -106,7 +106,7 @@ class Experiment(eqx.Module):
     t0: float = eqx.field(static=True)
     t1: float = eqx.field(static=True)
     dt0: Optional[float] = eqx.field(static=True)
-    stepsize_controller: Optional[AbstractStepSizeController]
+    stepsize_controller: AbstractStepSizeController
     root_finder: NewtonKrylov
     name: str = eqx.field(static=True)
 
@@ -145,7 +145,9 @@ class Experiment(eqx.Module):
         self.data, self.observe, self.sigma = jnp.asarray(d), observe, sigma
         self.t0, self.t1 = float(t0), t1
         self.dt0 = None if dt0 is None else float(dt0)
-        self.stepsize_controller = stepsize_controller
+        # the default spelled out, so that the same test built with or without it (a fit
+        # file names it) is one compiled program
+        self.stepsize_controller = ConstantStepSize() if stepsize_controller is None else stepsize_controller
         self.root_finder = NewtonKrylov(rtol=1e-11) if root_finder is None else root_finder
         self.name = str(name)
 
