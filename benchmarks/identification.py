@@ -3,11 +3,13 @@ cyclic tests (grip force; in relaxation also a marker's lateral displacement), s
 data from (eta_dev, eta_vol, mu_neq) = (2, 5, 2), fitted jointly by `jv.identify`.
 
     python benchmarks/identification.py [--seeds 50] [--chunk 5] [--elements 8,2,2] [--k 2]
-        [--parts exact,fd,noise] [--out identification.json]
+        [--parts exact,serial,fd,noise] [--out identification.json]
 
 Measures, in one process:
 - exact data, starts off by a factor 3 (up, down, up): errors, evaluations, the wall time
-  of the first fit (compiling) and of a second one (compiled);
+  of the first fit (compiling) and of a second one (compiled), the experiments evaluated
+  in threads as `jv.identify` does; `serial`: the same fit as one program, one thread
+  (its first fit reuses what the threaded fit traced of the inner programs);
 - 1 % noise on every column (relative to its RMS), `--seeds` seeds fitted as one batch
   (`jv.identify_batch` on chunks of `--chunk` seeds, one after the other on this machine's
   device; one compilation, the chunks report as they finish): the errors, and
@@ -72,12 +74,19 @@ def _fd_jvp(primals, tangents):
     return r, (_identify._residuals(values + eps * dv, problem) - r) / eps
 
 
-def fit(exps, residual):
+def fit(exps, residual, serial=False):
+    """One fit from START by `jv.least_squares`, the experiments as blocks (in threads,
+    as `jv.identify` fits them) or, `serial`, as one residual (one program)."""
     keys = tuple(START)
     start = np.array([START[k] for k in keys])
     problem = _identify._Problem(tuple(exps), keys)
+    if serial:
+        residuals, args = residual, problem
+    else:
+        residuals, args = _identify._by_experiment(problem)
+        residuals = (residual,) * len(residuals)
     t = time.perf_counter()
-    res = jv.least_squares(residual, start, problem, lower=np.zeros(3), names=keys, max_steps=50)
+    res = jv.least_squares(residuals, start, args, lower=np.zeros(3), names=keys, max_steps=50)
     jax.block_until_ready(res.values)
     return res, time.perf_counter() - t
 
@@ -94,7 +103,8 @@ def main(argv=None):
     ap.add_argument("--elements", default="8,2,2", help="the specimen's elements along x, y, z")
     ap.add_argument("--k", type=int, default=2, help="the time element eG(k)")
     ap.add_argument("--chunk", type=int, default=5, help="seeds per identify_batch call")
-    ap.add_argument("--parts", default="exact,fd,noise")
+    ap.add_argument("--parts", default="exact,serial,fd,noise",
+                    help="exact: AD fits; serial: the compiled fit as one program; fd: finite differences")
     ap.add_argument("--out", default="identification.json")
     args = ap.parse_args(argv)
     info = machine()
@@ -111,6 +121,12 @@ def main(argv=None):
     out["exact"] = dict(errors=errors(second.values, second.names), evaluations=int(second.iterations),
                         message=second.message, first_fit_s=t_first, compiled_fit_s=t_second)
     print(out["exact"], flush=True)
+    if "serial" in parts:
+        _, t_first_serial = fit(exps, _identify._residuals, serial=True)
+        _, t_serial = fit(exps, _identify._residuals, serial=True)
+        out["exact"].update(serial_first_fit_s=t_first_serial, serial_compiled_fit_s=t_serial,
+                            threads_speedup_compiled=t_serial / t_second)
+        print(out["exact"], flush=True)
     if "fd" in parts:
         _fd(exps, out, t_first, t_second)
     if "noise" in parts:

@@ -54,8 +54,8 @@ name = "eG"
 order = 1
 
 [time]
-t_end = 1.5
-dt = 0.1
+t1 = 1.5
+dt0 = 0.1
 """
 
 FIT = """

@@ -192,6 +192,30 @@ def test_progress_callback_and_stops():
     assert not broken.converged and "not finite at the start" in broken.message
 
 
+def test_residual_in_blocks_equals_the_whole():
+    """A residual given in blocks (two halves of the data, with their own functions)
+    fits as the whole vector does: at top level (the blocks in threads, one program
+    each) and under vmap (one program); a wrong number of args is refused."""
+    y = noisy(2)
+    half = T.shape[0] // 2
+    first = lambda x, a: model(x, T[:half]) - a  # noqa: E731
+    second = lambda x, a: model(x, T[half:]) - a  # noqa: E731
+    kw = dict(lower=LOWER_B, upper=UPPER_B, names=NAMES, sigma=jnp.linspace(1.0, 2.0, T.shape[0]))
+    whole = jv.least_squares(residual, TRUE * 3.0, y, **kw)
+    blocks = jv.least_squares([first, second], TRUE * 3.0, (y[:half], y[half:]), **kw)
+    for a, b in ((whole.values, blocks.values), (whole.intervals, blocks.intervals),
+                 (whole.residuals, blocks.residuals), (whole.correlation, blocks.correlation)):
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-14)
+    assert int(blocks.iterations) == int(whole.iterations)
+    mapped = jax.vmap(lambda s: jv.least_squares([first, second], s, (y[:half], y[half:]), **kw).values)(
+        jnp.stack([TRUE * 3.0, TRUE / 3.0]))
+    # another program (the iteration nested in a while loop): it stops within xtol = 1e-10
+    # (relative) of the optimum, maybe an iteration earlier or later than the top level
+    np.testing.assert_allclose(mapped, np.stack([whole.values] * 2), rtol=1e-8)
+    with pytest.raises(ValueError, match="args must be a sequence of as many"):
+        jv.least_squares([first, second], TRUE, y)
+
+
 def test_vmap_over_start_points():
     starts = jnp.asarray([TRUE * f for f in itertools.product([3.0, 1 / 3], repeat=3)])
     fits = jax.vmap(lambda s: fit(s, model(TRUE, T)))(starts)

@@ -323,13 +323,19 @@ class _Problem(eqx.Module):
 
 
 def _residuals(values, problem):
-    """The weighted residuals of every experiment, one vector (`least_squares`'s residual:
-    one function, so that every fit of the same layout reuses one compiled program)."""
+    """The weighted residuals of every experiment, one vector."""
     out = []
     for e in problem.experiments:
         sol = e.run(with_parameters(e.scene, dict(zip(problem.names, values))))
         out.append(((e.model(sol) - e.data) / e.scale()).ravel())
     return jnp.concatenate(out)
+
+
+def _by_experiment(problem):
+    """`least_squares`'s residual blocks and their arguments: one per experiment (one
+    function, so that an experiment's program serves every fit it is part of; the blocks
+    run in parallel threads)."""
+    return (_residuals,) * len(problem.experiments), tuple(_Problem((e,), problem.names) for e in problem.experiments)
 
 
 def _progress(step, cost, values):
@@ -519,11 +525,11 @@ def identify(experiments: "Experiment | Sequence[Experiment]", parameters: Optio
     known = all(e.sigma is not None for e in exps)
     common = dict(lower=lower, upper=upper, names=keys, absolute_sigma=known, xtol=xtol, ftol=ftol, gtol=gtol,
                   confidence=confidence, callback=_progress if verbose else None)
-    if method == "lbfgs":
+    if method == "lbfgs":  # the statistics from one Levenberg-Marquardt step where L-BFGS stopped
         start = _lbfgs(problem, start, lower, upper, keys, max_iterations, optimizer, verbose)
-        result = least_squares(_residuals, start, problem, max_steps=1, **common)
-    else:
-        result = least_squares(_residuals, start, problem, max_steps=int(max_iterations), **common)
+    residuals, args = _by_experiment(problem)
+    result = least_squares(residuals, start, args, max_steps=1 if method == "lbfgs" else int(max_iterations),
+                           **common)
     # what the fit predicts, from its weighted residuals (no run, no program to compile)
     r, model, k = np.asarray(result.residuals), [], 0
     for e in exps:
@@ -629,7 +635,8 @@ def identify_batch(experiments: "Experiment | Sequence[Experiment]", parameters:
 
     def one(*ds):
         problem = _Problem(tuple(eqx.tree_at(lambda e: e.data, e, d) for e, d in zip(exps, ds)), keys)
-        return least_squares(_residuals, start, problem, lower=lower, upper=upper, names=keys,
+        residuals, args = _by_experiment(problem)
+        return least_squares(residuals, start, args, lower=lower, upper=upper, names=keys,
                              absolute_sigma=known, xtol=xtol, ftol=ftol, gtol=gtol, confidence=confidence,
                              max_steps=int(max_iterations))
 

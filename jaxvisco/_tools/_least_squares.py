@@ -30,11 +30,18 @@ How it is built, and why (numbers: `benchmarks/least_squares_solver.py`, results
    benchmark). A rejected trial keeps the last Jacobian.
 4. Statistics come from the SVD of the column-scaled Jacobian: a rank-deficient Jacobian
    gives finite numbers and flags, never NaN.
+5. A residual given in blocks (several experiments of a joint fit) is evaluated block by
+   block at top level, each block its own compiled program, the blocks in threads: a
+   run and its tangents keep one CPU core busy (XLA's CPU programs of a time loop are
+   sequential), so on a machine with several cores the experiments compile and run side
+   by side (`benchmarks/identification.py`, `--serial` for the one-program layout).
 
 Per-iteration progress reaches the host through `jax.debug.callback`.
 """
 
-from typing import Any, Callable, Optional, Sequence
+import concurrent.futures
+import os
+from typing import Any, Callable, Optional, Sequence, Union
 
 import equinox as eqx
 import jax
@@ -147,7 +154,7 @@ class LeastSquaresResult(eqx.Module):
 
 
 def least_squares(
-    residual: Callable,
+    residual: Union[Callable, Sequence[Callable]],
     start: ArrayLike,
     args: Any = None,
     *,
@@ -174,9 +181,15 @@ def least_squares(
     **Arguments:**
 
     - `residual`: `residual(values, args) -> (m,)` array, differentiable in forward mode
-      (`jax.jacfwd`) and traceable by `jax.jit`; `values` is `(p,)`.
+      (`jax.jacfwd`) and traceable by `jax.jit`; `values` is `(p,)`. Or a sequence of
+      such functions, one per block of residuals (the experiments of a joint fit), with
+      `args` a sequence of the same length: the residual vector is their concatenation.
+      Called at top level, the blocks are evaluated in threads, each its own compiled
+      program, so that on a machine with several cores they compile and run in
+      parallel.
     - `start`: start values `(p,)`, strictly inside their bounds.
-    - `args`: passed to `residual` (data, a scene); a pytree of arrays.
+    - `args`: passed to `residual` (data, a scene); a pytree of arrays (one per block
+      for a sequence of residuals).
     - `lower`, `upper`: `(p,)` bounds, `-inf`/`inf` (or `None` for all) where absent.
       `lower = 0` without an upper bound makes a parameter positive (fitted in `log x`).
     - `names`: one name per parameter (default `x0`, `x1`, ...).
@@ -253,10 +266,23 @@ def least_squares(
     if isinstance(max_steps, bool) or not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps must be an integer >= 1, got {max_steps!r}.")
 
-    out = eqx.filter_eval_shape(residual, jnp.zeros(p), args)
-    if not hasattr(out, "shape") or len(out.shape) != 1:
-        raise ValueError(f"residual must return a vector (m,), got {getattr(out, 'shape', out)!r}.")
-    m = out.shape[0]
+    if callable(residual):
+        residuals, args = (residual,), (args,)
+    else:
+        residuals = tuple(residual)
+        if not residuals or not all(callable(f) for f in residuals):
+            raise ValueError(f"residual must be a function or a sequence of functions, got {residual!r}.")
+        if not isinstance(args, (list, tuple)) or len(args) != len(residuals):
+            raise ValueError(f"with {len(residuals)} residual functions, args must be a sequence of as many "
+                             f"(one per block), got {type(args).__name__}.")
+        args = tuple(args)
+    sizes = []
+    for f, a in zip(residuals, args):
+        out = eqx.filter_eval_shape(f, jnp.zeros(p), a)
+        if not hasattr(out, "shape") or len(out.shape) != 1:
+            raise ValueError(f"residual must return a vector (m,), got {getattr(out, 'shape', out)!r}.")
+        sizes.append(out.shape[0])
+    m = sum(sizes)
     if m < p or (m == p and not absolute_sigma):
         raise ValueError(f"{m} residuals cannot determine {p} parameters and the noise level; need "
                          "m > p, or m >= p with the noise level as sigma and absolute_sigma=True.")
@@ -269,8 +295,8 @@ def least_squares(
     dof = m - p
     q = scipy.stats.norm.ppf(0.5 + confidence / 2) if absolute_sigma else scipy.stats.t.ppf(0.5 + confidence / 2, dof)
     options = jnp.asarray([xtol, ftol, gtol, rcond, max_relative_error, q, 0.0 if absolute_sigma else 1.0 / dof])
-    return _solve(residual, bounds.to_unconstrained(start), args, sigma, bounds, options, int(max_steps), callback,
-                  names, float(confidence))
+    return _solve(residuals, tuple(sizes), bounds.to_unconstrained(start), args, sigma, bounds, options,
+                  int(max_steps), callback, names, float(confidence))
 
 
 class _State(eqx.Module):
@@ -310,20 +336,21 @@ def _cosine(r, J):
 
 
 class _Problem(eqx.Module):
-    """What every iteration needs: the residual and callback (static), the data, the
-    weights, the bounds and the options."""
+    """What every iteration needs: the residual blocks, their sizes and the callback
+    (static), the data (one `args` per block), the weights, the bounds and the options."""
 
-    residual: Callable = eqx.field(static=True)
+    residuals: tuple = eqx.field(static=True)
+    sizes: tuple = eqx.field(static=True)
     callback: Optional[Callable] = eqx.field(static=True)
     max_steps: int = eqx.field(static=True)
-    args: object
+    args: tuple
     sigma: jax.Array
     bounds: object
     options: jax.Array
 
 
-def _solve(residual, z0, args, sigma, bounds, options, max_steps, callback, names, confidence):
-    problem = _Problem(residual, callback, max_steps, args, sigma, bounds, options)
+def _solve(residuals, sizes, z0, args, sigma, bounds, options, max_steps, callback, names, confidence):
+    problem = _Problem(residuals, sizes, callback, max_steps, args, sigma, bounds, options)
     m, p = sigma.shape[0], z0.shape[0]
     # Typed as the iteration returns them (no weak types), or its program is compiled twice.
     f64 = lambda v: jnp.asarray(v, dtype=jnp.float64)  # noqa: E731
@@ -333,6 +360,14 @@ def _solve(residual, z0, args, sigma, bounds, options, max_steps, callback, name
         lam=f64(1e-2), scale=f64(1.0), evaluations=i32(0), steps=i32(0), status=i32(RUNNING),
         history_cost=f64(jnp.full(max_steps + 1, jnp.nan)), history_z=f64(jnp.full((max_steps + 1, p), jnp.nan)),
     )  # fmt: skip
+    if _top_level() and len(residuals) > 1:  # see the module notes (3., 5.)
+        with concurrent.futures.ThreadPoolExecutor(min(len(residuals), os.cpu_count() or 1)) as pool:
+            while int(state.status) == RUNNING:
+                blocks = list(pool.map(lambda b: _block_jit(*b), _blocks(problem, state.trial)))
+                J = jnp.concatenate([b[0] for b in blocks])
+                r = jnp.concatenate([b[1] for b in blocks])
+                state = _advance_jit(problem, state, J, r)
+        return _statistics_jit(problem, state, names, confidence)
     if _top_level():  # see the module notes (3.)
         while int(state.status) == RUNNING:
             state = _iteration_jit(problem, state)
@@ -341,17 +376,36 @@ def _solve(residual, z0, args, sigma, bounds, options, max_steps, callback, name
     return _statistics(problem, state, names, confidence)
 
 
+def _block(residual, args, sigma, bounds, z):
+    """One block's weighted residuals `residual(x(z), args) / sigma` and their Jacobian
+    in `z` (forward mode)."""
+
+    def weighted(z):
+        r = residual(bounds.to_physical(z), args) / sigma
+        return r, r
+
+    return jax.jacfwd(weighted, has_aux=True)(z)
+
+
+def _blocks(problem: _Problem, z):
+    """The arguments of `_block` for every block at `z`."""
+    offsets = np.cumsum((0,) + problem.sizes)
+    return [(problem.residuals[k], problem.args[k], problem.sigma[offsets[k]:offsets[k + 1]], problem.bounds, z)
+            for k in range(len(problem.sizes))]
+
+
 def _iteration(problem: _Problem, s: _State) -> _State:
     """One residual + Jacobian evaluation (the start, or a trial step), its acceptance,
     the convergence tests, and the next trial step."""
+    blocks = [_block(*b) for b in _blocks(problem, s.trial)]
+    return _advance(problem, s, jnp.concatenate([b[0] for b in blocks]), jnp.concatenate([b[1] for b in blocks]))
+
+
+def _advance(problem: _Problem, s: _State, J, r) -> _State:
+    """The evaluation `J`, `r` at `s.trial`: its acceptance, the convergence tests, and
+    the next trial step."""
     xtol, ftol, gtol = problem.options[0], problem.options[1], problem.options[2]
     bounds = problem.bounds
-
-    def weighted(z):
-        r = problem.residual(bounds.to_physical(z), problem.args) / problem.sigma
-        return r, r
-
-    J, r = jax.jacfwd(weighted, has_aux=True)(s.trial)
     cost = 0.5 * jnp.dot(r, r)
     finite = jnp.isfinite(cost) & jnp.all(jnp.isfinite(J))
     first = s.evaluations == 0
@@ -441,3 +495,5 @@ def _statistics(problem: _Problem, s: _State, names, confidence) -> LeastSquares
 
 _iteration_jit = jit(_iteration)
 _statistics_jit = jit(_statistics)
+_advance_jit = jit(_advance)
+_block_jit = jit(_block)
