@@ -34,7 +34,7 @@ How it is built, and why (numbers: `benchmarks/least_squares_solver.py`, results
    block at top level, each block its own compiled program, the blocks in threads: a
    run and its tangents keep one CPU core busy (XLA's CPU programs of a time loop are
    sequential), so on a machine with several cores the experiments compile and run side
-   by side (`benchmarks/identification.py`, `--serial` for the one-program layout).
+   by side (`benchmarks/identification.py`: its part `serial` is the one-program layout).
 
 Per-iteration progress reaches the host through `jax.debug.callback`.
 """
