@@ -76,3 +76,32 @@ def test_vmap_and_sharded_batches_equal_single_runs():
 def test_sharded_map_rejects_a_non_boolean_vectorize():
     with pytest.raises(TypeError, match="vectorize must be True or False, got 'yes'"):
         jv.sharded_map(lambda x: x, jnp.ones(2), vectorize="yes")
+
+
+def test_sharded_map_compiles_once_per_structure():
+    """A later call with the same function (or a module of the same structure, whose
+    arrays are then inputs, not constants) and shapes reuses the program; `identify_batch`
+    relies on it (one compile for every batch of fits of a layout)."""
+    import equinox as eqx
+    import jax
+
+    class Affine(eqx.Module):
+        a: jax.Array
+        power: int = eqx.field(static=True)
+
+        def __call__(self, x):
+            return self.a * x**self.power
+
+    compiles = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, duration, **kw: compiles.append(event) if event == "/jax/core/compile/backend_compile_duration"
+        else None)
+    x, y = jnp.arange(4.0), jnp.arange(1.0, 5.0)
+    a2, a3 = jnp.asarray(2.0), jnp.asarray(3.0)
+    first = jv.sharded_map(Affine(a2, 2), x)
+    n = len(compiles)
+    second = jv.sharded_map(Affine(a3, 2), y)
+    assert len(compiles) == n  # the same program, new arrays
+    jv.sharded_map(Affine(a3, 3), x)
+    assert len(compiles) > n  # another structure: another program
+    assert jnp.allclose(first, 2.0 * x**2) and jnp.allclose(second, 3.0 * y**2)

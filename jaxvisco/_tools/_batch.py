@@ -28,6 +28,7 @@ host passes its own rows) and results read back per host (`addressable_shards`).
 
 from typing import Any, Callable, Optional
 
+import equinox as eqx
 import jax
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
@@ -40,7 +41,10 @@ def sharded_map(fn: Callable, *batch, devices: Optional[list] = None, vectorize:
     **Arguments:**
 
     - `fn`: maps unbatched arrays (or pytrees) to a pytree of arrays, e.g. a function
-      that builds a scene from its arguments and returns a few numbers of its run.
+      that builds a scene from its arguments and returns a few numbers of its run. The
+      compiled program is kept for later calls with the same `fn` (the same function
+      object, or an `equinox.Module` of the same structure: its arrays are inputs of the
+      program, not constants baked into it) and inputs of the same shapes.
     - `*batch`: arrays with a leading batch axis whose length is a multiple of the number
       of devices.
     - `devices`: the devices to use (default `jax.devices()`).
@@ -85,8 +89,23 @@ def sharded_map(fn: Callable, *batch, devices: Optional[list] = None, vectorize:
     (size,) = sizes
     if size % n:
         raise ValueError(f"the batch size {size} is not a multiple of the number of devices {n}.")
+    dynamic, static = eqx.partition(fn, eqx.is_array)
+    return _mapped(dynamic, batch, static, tuple(devices), vectorize)
+
+
+@eqx.filter_jit
+def _mapped(dynamic, batch, static, devices, vectorize):
+    """`sharded_map`'s program: `fn`'s arrays (`dynamic`) replicated on every device, the
+    batch split along its first axis. One compiled program per `fn` structure, devices
+    and shapes (a program per call, with `fn`'s arrays as constants, cost the batch of fits
+    of `identify_batch` its whole compile time again on every call)."""
     mesh = Mesh(np.asarray(devices), ("batch",))
     spec = PartitionSpec("batch")
-    per_device = jax.vmap(fn) if vectorize else (lambda *b: jax.lax.map(lambda args: fn(*args), b))
-    mapped = jax.shard_map(per_device, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
-    return jax.jit(mapped)(*batch)
+
+    def per_device(dynamic, *b):
+        fn = eqx.combine(dynamic, static)
+        return jax.vmap(fn)(*b) if vectorize else jax.lax.map(lambda args: fn(*args), b)
+
+    mapped = jax.shard_map(per_device, mesh=mesh, in_specs=(PartitionSpec(),) + (spec,) * len(batch), out_specs=spec,
+                           check_vma=False)
+    return mapped(dynamic, *batch)

@@ -563,6 +563,31 @@ def _lbfgs(problem, start, lower, upper, names, max_iterations, optimizer, verbo
     return np.asarray(bounds.to_physical(z))
 
 
+class _BatchFit(eqx.Module):
+    """One member's fit of `identify_batch`, from its data sets (one per experiment): a
+    module, so that its experiments are inputs of the batch's program and a later batch
+    of the same layout reuses it."""
+
+    experiments: tuple
+    names: tuple = eqx.field(static=True)
+    start: tuple = eqx.field(static=True)  # numbers, checked against the bounds on the host
+    lower: tuple = eqx.field(static=True)
+    upper: tuple = eqx.field(static=True)
+    known: bool = eqx.field(static=True)
+    options: tuple = eqx.field(static=True)
+
+    def __call__(self, *data):
+        from ._least_squares import least_squares
+
+        xtol, ftol, gtol, confidence, max_iterations = self.options
+        exps = tuple(eqx.tree_at(lambda e: e.data, e, d) for e, d in zip(self.experiments, data))
+        residuals, args = _by_experiment(_Problem(exps, self.names))
+        return least_squares(residuals, np.array(self.start), args, lower=np.array(self.lower),
+                             upper=np.array(self.upper), names=self.names,
+                             absolute_sigma=self.known, xtol=xtol, ftol=ftol, gtol=gtol, confidence=confidence,
+                             max_steps=max_iterations)
+
+
 @eqx.filter_jit
 def _lbfgs_step(problem, bounds, opt, z, state):
     import optax
@@ -633,12 +658,9 @@ def identify_batch(experiments: "Experiment | Sequence[Experiment]", parameters:
     upper = np.array([specs[n].upper for n in keys])
     known = all(e.sigma is not None for e in exps)
 
-    def one(*ds):
-        problem = _Problem(tuple(eqx.tree_at(lambda e: e.data, e, d) for e, d in zip(exps, ds)), keys)
-        residuals, args = _by_experiment(problem)
-        return least_squares(residuals, start, args, lower=lower, upper=upper, names=keys,
-                             absolute_sigma=known, xtol=xtol, ftol=ftol, gtol=gtol, confidence=confidence,
-                             max_steps=int(max_iterations))
+    one = _BatchFit(tuple(exps), keys, tuple(float(v) for v in start), tuple(float(v) for v in lower),
+                    tuple(float(v) for v in upper), known,
+                    (float(xtol), float(ftol), float(gtol), float(confidence), int(max_iterations)))
 
     devices = jax.devices() if devices is None else list(devices)
     if jax.process_count() == 1:
