@@ -153,13 +153,14 @@ def _noise(args, exps, out):
     for e in exps:
         d = np.asarray(e.data)
         batch.append(d[None] + 0.01 * np.sqrt(np.mean(d**2, axis=0)) * rng.standard_normal((args.seeds,) + d.shape))
-    chunks = []
+    chunks, chunk_s = [], []
     t = time.perf_counter()
     for lo in range(0, args.seeds, args.chunk):
         part = [d[lo:lo + args.chunk] for d in batch]
         r = jv.identify_batch(exps, START, part)
         jax.block_until_ready(r.values)
         chunks.append(r)
+        chunk_s.append(time.perf_counter() - t - sum(chunk_s))
         print(f"seeds {lo}..{lo + len(part[0]) - 1}: {time.perf_counter() - t:.1f} s", flush=True)
     t_batch = time.perf_counter() - t
     res = jax.tree.map(lambda *xs: np.concatenate(xs) if isinstance(xs[0], (np.ndarray, jax.Array)) else xs[0],
@@ -170,7 +171,8 @@ def _noise(args, exps, out):
     covered = (intervals[..., 0] <= truth) & (truth <= intervals[..., 1])
     lo, hi = scipy.stats.binom.ppf([0.025, 0.975], args.seeds, 0.95) / args.seeds
     out["noise"] = dict(seeds=args.seeds, chunk=args.chunk, level=0.01, batch_s=t_batch,
-                        per_fit_s=t_batch / args.seeds,
+                        per_fit_s=t_batch / args.seeds, chunk_s=chunk_s,
+                        per_fit_compiled_s=(float(np.median(chunk_s[1:])) / args.chunk if len(chunk_s) > 1 else None),
                         coverage={n: float(covered[:, i].mean()) for i, n in enumerate(names)},
                         coverage_expected_range=[float(lo), float(hi)],
                         error_mean={n: float(np.mean(values[:, i] / truth[i] - 1)) for i, n in enumerate(names)},
