@@ -82,8 +82,9 @@ def pages():
 
 @pytest.fixture
 def scratch(tmp_path, monkeypatch):
-    """A scratch folder with the example data, scenes and fit files, as the current directory; JAX's cache
-    settings restored afterwards (a page may turn on a cache of its own)."""
+    """A scratch folder with the example data, scenes and fit files, as the current
+    directory; JAX's cache settings restored afterwards (a page may turn on a cache of
+    its own)."""
     for sub in ("data", "scenes", "fit"):
         shutil.copytree(os.path.join(ROOT, "examples", sub), tmp_path / "examples" / sub)
     monkeypatch.chdir(tmp_path)
