@@ -182,14 +182,10 @@ def least_squares(
 
     - `residual`: `residual(values, args) -> (m,)` array, differentiable in forward mode
       (`jax.jacfwd`) and traceable by `jax.jit`; `values` is `(p,)`. Or a sequence of
-      such functions, one per block of residuals (the experiments of a joint fit), with
-      `args` a sequence of the same length: the residual vector is their concatenation.
-      Called at top level, the blocks are evaluated in threads, each its own compiled
-      program, so that on a machine with several cores they compile and run in
-      parallel.
+      such functions (blocks, e.g. experiments) with a sequence of `args`: concatenated,
+      evaluated in parallel threads.
     - `start`: start values `(p,)`, strictly inside their bounds.
-    - `args`: passed to `residual` (data, a scene); a pytree of arrays (one per block
-      for a sequence of residuals).
+    - `args`: passed to `residual` (data, a scene); a pytree of arrays.
     - `lower`, `upper`: `(p,)` bounds, `-inf`/`inf` (or `None` for all) where absent.
       `lower = 0` without an upper bound makes a parameter positive (fitted in `log x`).
     - `names`: one name per parameter (default `x0`, `x1`, ...).
@@ -220,9 +216,8 @@ def least_squares(
 
     A `LeastSquaresResult`. A parameter is flagged not identifiable when a null
     direction of the column-scaled Jacobian (singular values below `rcond` times the
-    largest) dominates its variance, so that the data see it only together with others
-    or not at all (its standard error is then `inf` and its interval the whole range its
-    bounds allow), or when its relative standard error exceeds `max_relative_error`.
+    largest) dominates its variance (its standard error is then `inf`), or when its
+    relative standard error exceeds `max_relative_error`.
 
     **Raises:**
 
