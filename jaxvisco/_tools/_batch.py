@@ -33,6 +33,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
+from .._config import jit
+
 
 def sharded_map(fn: Callable, *batch, devices: Optional[list] = None, vectorize: bool = False) -> Any:
     """Map `fn` over a batch, split evenly over `devices` (default: all devices; with
@@ -93,12 +95,13 @@ def sharded_map(fn: Callable, *batch, devices: Optional[list] = None, vectorize:
     return _mapped(dynamic, batch, static, tuple(devices), vectorize)
 
 
-@eqx.filter_jit
+@jit
 def _mapped(dynamic, batch, static, devices, vectorize):
     """`sharded_map`'s program: `fn`'s arrays (`dynamic`) replicated on every device, the
     batch split along its first axis. One compiled program per `fn` structure, devices
     and shapes (a program per call, with `fn`'s arrays as constants, cost the batch of fits
-    of `identify_batch` its whole compile time again on every call)."""
+    of `identify_batch` its whole compile time again on every call), compiled with
+    `compiler_options()` as jaxvisco's other top-level programs."""
     mesh = Mesh(np.asarray(devices), ("batch",))
     spec = PartitionSpec("batch")
 
