@@ -192,7 +192,7 @@ class Extensometer(AbstractOneColumn):
         return (jnp.linalg.norm(x[:, 1] - x[:, 0], axis=-1) - jnp.linalg.norm(X[1] - X[0]))[:, None]
 
 
-class Quantity(AbstractObservable):
+class Quantity(AbstractOneColumn):
     """A diagnostic of the run's frames by name, one column: not what a lab measures, but
     what a study of the scheme may fit.
 
@@ -218,12 +218,9 @@ class Quantity(AbstractObservable):
         return getattr(solution, self.field)[:, None]
 
     @property
-    def columns(self):
-        return 1
-
-    @property
-    def labels(self):
-        return [self.field]
+    def name(self):
+        """Its column's label: the field."""
+        return self.field
 
 
 class Custom(AbstractObservable):
