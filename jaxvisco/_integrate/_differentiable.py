@@ -12,8 +12,8 @@ the loop; differentiated, its rule
    the state at the start of every L-th sub-step (*checkpoint* plan);
 2. returns the tangent of its frames as one linear map of the input tangents (`_sweep`),
    whose transpose is written out by hand (`_adjoint_sweep`): JAX calls the first for
-   `jax.jvp`/`jax.jacfwd` and the second for `jax.grad`/`jax.vjp`
-   (`lax.custom_linear_solve` carries the pair).
+   `jax.jvp`/`jax.jacfwd` and the second for `jax.grad`/`jax.vjp` (one primitive,
+   `_sweep_p`, carries the pair).
 
 Each sub-step j is the map $(\\theta, s_j, U_j) \\mapsto (R, s_{j+1}, D_j, W_j)$
 (`_step_map`: residual, end state, dissipation, external work) with the constraint
@@ -37,6 +37,7 @@ import math
 from typing import Optional
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -273,11 +274,11 @@ class _Split:
     """The leaves of a primal pytree that its tangent differentiates (`theta`, their
     tangents `tangent`), and the primal rebuilt from new values of them (`build`)."""
 
-    def __init__(self, primal, tangent):
+    def __init__(self, primal, tangent=None, where=None):
         leaves, self.treedef = jax.tree_util.tree_flatten(primal)
         t = [None] * len(leaves) if tangent is None else self.treedef.flatten_up_to(tangent)
         self.leaves = leaves
-        self.where = [i for i, ti in enumerate(t) if ti is not None]
+        self.where = [i for i, ti in enumerate(t) if ti is not None] if where is None else list(where)
         self.theta = [leaves[i] for i in self.where]
         self.tangent = [t[i] for i in self.where]
 
@@ -601,25 +602,83 @@ def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_g
     names = [k for k in ("x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated", "dissipation_rate",
                          "external_work", "linear_momentum", "angular_momentum", "reaction", "reaction_mean")
              if getattr(sol, k) is not None]
-    sw = _Sweep(rec, split, state0, v0, use_v0, sol.n_saved, scheme, solver, save_gamma, save_reactions, t0, throw)
-
-    def solve(_, b):
-        return _zeros(b[0]), _sweep(sw, b[0])
-
-    def transpose_solve(_, b):
-        g_theta, g_state, g_v0 = _adjoint_sweep(sw, b[1])
-        g_state = jax.tree_util.tree_map(lambda t, g: None if t is None else g, t_state0, g_state,
-                                         is_leaf=lambda t: t is None)
-        return (list(g_theta), g_state, None if t_v0 is None else g_v0), _zeros(b[1])
-
-    # The pair rides on `lax.custom_linear_solve` (matvec: the identity on (inputs,
-    # outputs)): its `solve` is the sweep, its `transpose_solve` the adjoint sweep. JAX's
-    # transpose rule wants every operand to depend on the tangents: the output slots are
-    # zeros plus zero times one of them.
-    lead = jax.tree_util.tree_leaves(a)[0]
-    nil = 0.0 * jnp.sum(lead)
-    out_zero = ({k: jnp.zeros_like(getattr(sol, k)) + nil for k in names}, jnp.zeros_like(sol.end_velocity) + nil)
-    _, (d_frames, d_v) = jax.lax.custom_linear_solve(lambda x: x, (a, out_zero), solve, transpose_solve)
+    spec = lambda tree: jax.tree_util.tree_map(lambda v: jax.ShapeDtypeStruct(v.shape, v.dtype), tree)  # noqa: E731
+    spec_out = spec(({k: getattr(sol, k) for k in names}, sol.end_velocity))
+    cfg = _SweepConfig(scheme, solver, save_gamma, save_reactions, throw, tuple(split.where), spec(a), spec_out, False)
+    dyn = dict(rec=rec, scene=scene, state0=state0, v0=v0, use_v0=use_v0, n_saved=sol.n_saved, t0=t0)
+    d_frames, d_v = eqxi.filter_primitive_bind(_sweep_p, dyn, a, cfg)
     t_sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names] + [s.end_velocity], t_sol,
                         [d_frames[k] for k in names] + [d_v], is_leaf=lambda x: x is None)
     return sol, t_sol
+
+
+# --- the pair of sweeps as one JAX primitive ----------------------------------------------
+# Why a primitive: the sweep and its transpose must be one linear map to JAX (its rules
+# call the first for jvp/jacfwd, the second for grad/vjp), and `lax.custom_linear_solve`,
+# which carried the pair before, traces both (and batches both, under jacfwd) as soon as
+# the tangent is formed: the adjoint sweep was 40 % of tracing jacfwd of a run. A
+# primitive (equinox's filter-primitive helpers, as lineax's `linear_solve_p`) traces the
+# sweep it runs only, and only when its program is lowered; its batching rule is vmap of
+# that sweep.
+@dataclasses.dataclass(frozen=True, eq=False)
+class _SweepConfig:
+    """The static half of a sweep primitive: the loop's settings, which scene leaves are
+    differentiated (`where`), the shapes of the input tangents `spec_a` and of the frame
+    tangents `spec_out`, and the direction (`transpose`: the adjoint sweep)."""
+
+    scheme: object
+    solver: object
+    save_gamma: bool
+    save_reactions: bool
+    throw: bool
+    where: tuple
+    spec_a: object
+    spec_out: object
+    transpose: bool
+
+    def flipped(self):
+        return dataclasses.replace(self, transpose=not self.transpose)
+
+    def sweep(self, dyn):
+        return _Sweep(dyn["rec"], _Split(dyn["scene"], where=self.where), dyn["state0"], dyn["v0"], dyn["use_v0"], dyn["n_saved"], self.scheme,
+                      self.solver, self.save_gamma, self.save_reactions, dyn["t0"], self.throw)
+
+
+def _sweep_impl(dyn, lin, cfg):
+    sw = cfg.sweep(dyn)
+    if not cfg.transpose:
+        return _sweep(sw, lin)
+    g_theta, g_state, g_v0 = _adjoint_sweep(sw, lin)
+    t_theta, t_state0, t_v0 = cfg.spec_a
+    g_state = jax.tree_util.tree_map(lambda t, g: None if t is None else g, t_state0, g_state,
+                                     is_leaf=lambda t: t is None)
+    return list(g_theta), g_state, None if t_v0 is None else g_v0
+
+
+def _sweep_abstract_eval(dyn, lin, cfg):
+    del dyn, lin
+    return jax.tree_util.tree_map(lambda v: jax.core.ShapedArray(v.shape, v.dtype),
+                                  cfg.spec_a if cfg.transpose else cfg.spec_out)
+
+
+def _sweep_jvp(primals, tangents):
+    """The sweeps are linear in their input tangents; their other inputs are constants
+    (second derivatives of a run are not supported)."""
+    dyn, lin, cfg = primals
+    t_dyn, t_lin, _ = tangents
+    if jax.tree_util.tree_leaves(t_dyn):
+        raise NotImplementedError("jaxvisco: second derivatives of a run are not supported (its derivative is "
+                                  "computed by sweeps that are not differentiated again).")
+    t_lin = jax.tree_util.tree_map(eqxi.materialise_zeros, lin, t_lin, is_leaf=lambda t: t is None)
+    return eqxi.filter_primitive_bind(_sweep_p, dyn, lin, cfg), eqxi.filter_primitive_bind(_sweep_p, dyn, t_lin, cfg)
+
+
+def _sweep_transpose(inputs, cts):
+    dyn, lin, cfg = inputs
+    none = jax.tree_util.tree_map(lambda _: None, dyn)
+    return none, eqxi.filter_primitive_bind(_sweep_p, dyn, cts, cfg.flipped()), None
+
+
+_sweep_p = eqxi.create_vprim("jaxvisco_sweep", eqxi.filter_primitive_def(_sweep_impl),
+                             eqxi.filter_primitive_def(_sweep_abstract_eval), eqxi.filter_primitive_jvp(_sweep_jvp),
+                             eqxi.filter_primitive_transpose(materialise_zeros=True)(_sweep_transpose))
