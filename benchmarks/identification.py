@@ -3,7 +3,7 @@ cyclic tests (grip force; in relaxation also a marker's lateral displacement), s
 data from (eta_dev, eta_vol, mu_neq) = (2, 5, 2), fitted jointly by `jv.identify`.
 
     python benchmarks/identification.py [--seeds 50] [--chunk 5] [--elements 8,2,2] [--k 2]
-        [--parts exact,serial,fd,noise] [--out identification.json]
+        [--parts exact,serial,fd,cold,noise] [--cold 3] [--out identification.json]
 
 Measures, in one process:
 - exact data, starts off by a factor 3 (up, down, up): errors, evaluations, the wall time
@@ -15,12 +15,18 @@ Measures, in one process:
   device; one compilation, the chunks report as they finish): the errors, and
   how often each 95 % interval holds the true value (its coverage), with a binomial 95 %
   range for that fraction;
+- `cold`: the first fit in each of `--cold` fresh processes (this script, part `first`),
+  which trace and compile everything the fit runs: the issue's "a whole fit" (median);
 - the same exact-data fit with a Jacobian by forward finite differences (one more run
   per parameter, as FEBio's and MatCal's optimizers do): evaluations and time, the ratio
   to beat.
 """
 
 import argparse
+import json
+import os
+import subprocess
+import sys
 import time
 
 import jax
@@ -92,9 +98,6 @@ def fit(exps, residual, serial=False):
 
 
 def main(argv=None):
-    import os
-    import sys
-
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from common import machine, write_json
 
@@ -103,8 +106,10 @@ def main(argv=None):
     ap.add_argument("--elements", default="8,2,2", help="the specimen's elements along x, y, z")
     ap.add_argument("--k", type=int, default=2, help="the time element eG(k)")
     ap.add_argument("--chunk", type=int, default=5, help="seeds per identify_batch call")
-    ap.add_argument("--parts", default="exact,serial,fd,noise",
-                    help="exact: AD fits; serial: the compiled fit as one program; fd: finite differences")
+    ap.add_argument("--parts", default="exact,serial,fd,cold,noise",
+                    help="exact: AD fits; serial: the compiled fit as one program; fd: finite differences; "
+                         "cold: first fits in fresh processes; first: one first fit, printed as JSON")
+    ap.add_argument("--cold", type=int, default=3, help="fresh processes of the part cold")
     ap.add_argument("--out", default="identification.json")
     args = ap.parse_args(argv)
     info = machine()
@@ -113,6 +118,10 @@ def main(argv=None):
     exps = experiments(elements, args.k)
     out = dict(machine=info, truth=TRUTH, start=START, elements=list(elements), integrator=f"eG({args.k})",
                m=int(sum(np.asarray(e.data).size for e in exps)))
+    if parts == ["first"]:
+        _, t_first = fit(exps, _identify._residuals)
+        print(json.dumps(dict(first_fit_s=t_first)))
+        return None
     if "exact" not in parts:
         return _noise(args, exps, out) if "noise" in parts else write_json(args.out, out)
     # exact data, AD Jacobian (forward mode through the runs)
@@ -129,9 +138,20 @@ def main(argv=None):
         print(out["exact"], flush=True)
     if "fd" in parts:
         _fd(exps, out, t_first, t_second)
+    if "cold" in parts:
+        cold = [_cold(args) for _ in range(args.cold)]
+        out["exact"].update(cold_fit_s=float(np.median(cold)), cold_fit_all_s=cold)
+        print(out["exact"], flush=True)
     if "noise" in parts:
         return _noise(args, exps, out)
     write_json(args.out, out)
+
+
+def _cold(args):
+    """The first fit's wall time in a fresh process (this script, part `first`)."""
+    cmd = [sys.executable, os.path.abspath(__file__), "--parts", "first", "--elements", args.elements, "--k", str(args.k)]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])["first_fit_s"]
 
 
 def _fd(exps, out, t_first, t_second):

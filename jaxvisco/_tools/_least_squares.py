@@ -41,6 +41,7 @@ Per-iteration progress reaches the host through `jax.debug.callback`.
 
 import concurrent.futures
 import os
+import threading
 from typing import Any, Callable, Optional, Sequence, Union
 
 import equinox as eqx
@@ -357,6 +358,7 @@ def _solve(residuals, sizes, z0, args, sigma, bounds, options, max_steps, callba
     )  # fmt: skip
     if _top_level() and len(residuals) > 1:  # see the module notes (3., 5.)
         with concurrent.futures.ThreadPoolExecutor(min(len(residuals), os.cpu_count() or 1)) as pool:
+            list(pool.map(_compile_block, _blocks(problem, state.trial)))
             while int(state.status) == RUNNING:
                 blocks = list(pool.map(lambda b: _block_jit(*b), _blocks(problem, state.trial)))
                 J = jnp.concatenate([b[0] for b in blocks])
@@ -369,6 +371,19 @@ def _solve(residuals, sizes, z0, args, sigma, bounds, options, max_steps, callba
         return _statistics_jit(problem, state, names, confidence)
     state = jax.lax.while_loop(lambda s: s.status == RUNNING, lambda s: _iteration(problem, s), state)
     return _statistics(problem, state, names, confidence)
+
+
+_LOWERING = threading.Lock()
+
+
+def _compile_block(block):
+    """Compile a block's program (AOT, its jit call then finds it) with its tracing and
+    lowering taken one block at a time: they hold Python's lock, so blocks traced side by
+    side would all finish late; one at a time, the first compiles (which releases the
+    lock) while the next is traced (the module notes, 5.)."""
+    with _LOWERING:
+        lowered = _block_jit.lower(*block)
+    lowered.compile()
 
 
 def _block(residual, args, sigma, bounds, z):
