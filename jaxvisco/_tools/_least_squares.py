@@ -358,9 +358,10 @@ def _solve(residuals, sizes, z0, args, sigma, bounds, options, max_steps, callba
     )  # fmt: skip
     if _top_level() and len(residuals) > 1:  # see the module notes (3., 5.)
         with concurrent.futures.ThreadPoolExecutor(min(len(residuals), os.cpu_count() or 1)) as pool:
-            list(pool.map(_compile_block, _blocks(problem, state.trial)))
+            evaluate = _first_block
             while int(state.status) == RUNNING:
-                blocks = list(pool.map(lambda b: _block_jit(*b), _blocks(problem, state.trial)))
+                blocks = list(pool.map(evaluate, _blocks(problem, state.trial)))
+                evaluate = lambda b: _block_jit(*b)  # noqa: E731
                 J = jnp.concatenate([b[0] for b in blocks])
                 r = jnp.concatenate([b[1] for b in blocks])
                 state = _advance_jit(problem, state, J, r)
@@ -376,14 +377,15 @@ def _solve(residuals, sizes, z0, args, sigma, bounds, options, max_steps, callba
 _LOWERING = threading.Lock()
 
 
-def _compile_block(block):
-    """Compile a block's program (AOT, its jit call then finds it) with its tracing and
-    lowering taken one block at a time: they hold Python's lock, so blocks traced side by
-    side would all finish late; one at a time, the first compiles (which releases the
-    lock) while the next is traced (the module notes, 5.)."""
+def _first_block(block):
+    """A block's first evaluation, its program compiled ahead (its jit call then finds
+    it) with tracing and lowering taken one block at a time: they hold Python's lock, so
+    blocks traced side by side would all finish late; one at a time, the first compiles
+    (which releases the lock) and runs while the next is traced (the module notes, 5.)."""
     with _LOWERING:
         lowered = _block_jit.lower(*block)
     lowered.compile()
+    return _block_jit(*block)
 
 
 def _block(residual, args, sigma, bounds, z):
