@@ -216,6 +216,33 @@ def test_residual_in_blocks_equals_the_whole():
         jv.least_squares([first, second], TRUE, y)
 
 
+def test_blocks_compile_once_each():
+    """At top level each block's program is compiled ahead of its first evaluation (its
+    tracing one block at a time); the evaluations then run that program, not a second
+    compile of it."""
+    y = noisy(3)
+    half = T.shape[0] // 2
+    compiles = []
+
+    def listen(event, duration, fun_name="", **kw):
+        if event == "/jax/core/compile/backend_compile_duration" and fun_name == "jit(_block)":
+            compiles.append(fun_name)
+
+    def fit_blocks():  # new functions each call: new block programs
+        first = lambda x, a: model(x, T[:half]) - a  # noqa: E731
+        second = lambda x, a: model(x, T[half:]) - a  # noqa: E731
+        return jv.least_squares([first, second], TRUE * 3.0, (y[:half], y[half:]), lower=LOWER_B, upper=UPPER_B)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        once = fit_blocks()
+        again = fit_blocks()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert len(compiles) == 4  # two blocks per fit, each compiled once
+    np.testing.assert_array_equal(again.values, once.values)
+
+
 def test_vmap_over_start_points():
     starts = jnp.asarray([TRUE * f for f in itertools.product([3.0, 1 / 3], repeat=3)])
     fits = jax.vmap(lambda s: fit(s, model(TRUE, T)))(starts)
