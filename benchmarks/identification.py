@@ -149,7 +149,8 @@ def main(argv=None):
 
 def _cold(args):
     """The first fit's wall time in a fresh process (this script, part `first`)."""
-    cmd = [sys.executable, os.path.abspath(__file__), "--parts", "first", "--elements", args.elements, "--k", str(args.k)]
+    cmd = [sys.executable, os.path.abspath(__file__), "--parts", "first", "--elements", args.elements,
+           "--k", str(args.k)]
     done = subprocess.run(cmd, capture_output=True, text=True, check=True)
     return json.loads(done.stdout.strip().splitlines()[-1])["first_fit_s"]
 
