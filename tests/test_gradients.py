@@ -196,3 +196,17 @@ def test_derivative_refuses_what_it_cannot_differentiate():
                     jax.block_until_ready(sweep(*args))
             else:
                 assert np.all(np.isnan(np.asarray(sweep(*args))))
+
+
+def test_second_derivatives_are_refused():
+    """A run's derivative is a pair of sweeps that are not differentiated again: a second
+    derivative (here `jax.hessian`, forward over reverse) stops with an error that says
+    so while it is traced, rather than giving a number."""
+    scene = _scene()
+
+    def loss(log_eta):
+        sol = jv.simulate(_with(scene, jnp.array([log_eta, 0.0, 1.0])), jv.eG(1), t1=0.2, dt0=0.1)
+        return sol.dissipated[-1]
+
+    with pytest.raises(NotImplementedError, match="second derivatives of a run are not supported"):
+        jax.make_jaxpr(jax.hessian(loss))(jnp.asarray(1.0))  # traced, not compiled
