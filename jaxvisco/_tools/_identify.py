@@ -636,7 +636,6 @@ def identify_batch(experiments: "Experiment | Sequence[Experiment]", parameters:
 
     from ._batch import sharded_map
     from ._experiment import Experiment
-    from ._least_squares import least_squares
 
     exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
     data = [data] if isinstance(experiments, Experiment) and not isinstance(data, (list, tuple)) else list(data)
@@ -653,13 +652,10 @@ def identify_batch(experiments: "Experiment | Sequence[Experiment]", parameters:
     for n in keys:
         if n not in PARAMETERS:
             raise ValueError(f"identify_batch: unknown parameter {n!r}; accepted: {sorted(PARAMETERS)}.")
-    start = np.array([specs[n].start for n in keys])
-    lower = np.array([specs[n].lower for n in keys])
-    upper = np.array([specs[n].upper for n in keys])
+    start, lower, upper = (tuple(float(getattr(specs[n], a)) for n in keys) for a in ("start", "lower", "upper"))
     known = all(e.sigma is not None for e in exps)
 
-    one = _BatchFit(tuple(exps), keys, tuple(float(v) for v in start), tuple(float(v) for v in lower),
-                    tuple(float(v) for v in upper), known,
+    one = _BatchFit(tuple(exps), keys, start, lower, upper, known,
                     (float(xtol), float(ftol), float(gtol), float(confidence), int(max_iterations)))
 
     devices = jax.devices() if devices is None else list(devices)
@@ -669,11 +665,9 @@ def identify_batch(experiments: "Experiment | Sequence[Experiment]", parameters:
     # result back.
     mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
     spec = jax.sharding.PartitionSpec("batch")
-    B, n_local = data[0].shape[0], len(jax.local_devices())
-    per = B // len(devices)
+    per = data[0].shape[0] // len(devices)
     mine = [i for i, d in enumerate(devices) if d.process_index == jax.process_index()]
     rows = np.concatenate([np.arange(i * per, (i + 1) * per) for i in mine]) if mine else np.arange(0)
-    del n_local
     arrays = [multihost_utils.host_local_array_to_global_array(d[rows], mesh, spec) for d in data]
     out = sharded_map(one, *arrays, devices=devices, vectorize=vectorize)
     return multihost_utils.process_allgather(out, tiled=True)
