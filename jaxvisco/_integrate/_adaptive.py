@@ -87,11 +87,14 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
            use_v0, save_reactions, plan=None):
     """The loop itself: the `Solution`, the next step size and the `Record` of its
     accepted steps (with a `Plan`: what a derivative needs of them)."""
-    order = scheme.k + 1
+    order = ctrl.order(scheme.k)
+    span = jnp.where(ctrl.span > 0, ctrl.span, t1 - t0)  # the run the tolerance is for
     v_state0 = scene.velocity(state0.p)  # one mass solve for H_0 and the predictor
     rates = uses_end_velocities(scheme, scene, state0)
     diag0 = scene.diagnostics(state0, v_state0)
     H0 = diag0["energy"]
+    by_energy = ctrl.internal_variable == "energy" and state0.gamma is not None
+    total_mass = scene.mass() if by_energy else None
     dense = ts_out is not None
     n_frames = ts_out.shape[0] if dense else 1 + -(-capacity // save_every)
     frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
@@ -115,19 +118,25 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         vm_end = scene.velocity(new.p, rtol=1e-10) if rates else c["vm"]
         new, D, W, v_end, ok = step_outcome(scheme, scene, ctx, r, dissipation_of_solve=True,
                                             velocity=vm_end if rates else None, new=new)
+        dissipated, work = c["dissipated"] + D, c["work"] + W
+        energy = None
+        if by_energy:  # the energy of the step's end less that of its centre of mass's flight
+            P = jnp.sum(new.p, axis=0)
+            energy = H0 - dissipated + work - 0.5 * jnp.vdot(P, P) / total_mass
         err, strain = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol,
-                                   (c["vm"], vm_end) if rates else None, c["strain"])
-        err = jnp.where(ok & jnp.isfinite(err), err, jnp.inf)
+                                   (c["vm"], vm_end) if rates else None, c["strain"], energy)
+        err = jnp.where(ok & jnp.isfinite(err), ctrl.over_run(err, h_try, span), jnp.inf)
         at_min = h_try <= ctrl.dtmin * (1.0 + 1e-12)
         accept = ok & ((err <= 1.0) | at_min)
         i = c["i"]
-        dissipated, work = c["dissipated"] + D, c["work"] + W
         rec = record_substep(c["rec"], t, h_try, accept, U=r.U, state=c["state"], v=c["v"], formed=r.formed)
 
-        # Next step size.
-        grow = ctrl.accepted_factor(order, err, c["err1"], c["err2"])
+        # Next step size; a new size divides the rest of the run into whole steps.
+        grow = ctrl.accepted_factor(order, err, c["err1"], c["err2"], (t1 - t_next) / h_try)
         shrink = jnp.where(ok, ctrl.rejected_factor(order, err), 0.5)
-        h_new = jnp.clip(h_try * jnp.where(accept, grow, shrink), ctrl.dtmin, ctrl.dtmax)
+        factor = jnp.where(accept, grow, shrink)
+        h_new = jnp.clip(h_try * factor, ctrl.dtmin, ctrl.dtmax)
+        h_new = jnp.where(factor == 1.0, h_new, ctrl.whole_steps(h_new, t1 - jnp.where(accept, t_next, t)))
         failed = ~accept & at_min
 
         status = jnp.where(failed, FAILED, RUNNING)
@@ -172,7 +181,11 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
         keys = ("i", "state", "t", "v", "vm", "frames", "steps", "n_saved", "dissipated", "work", "err1", "err2",
                 "strain", "its", "kits", "chord", "rej")
         out = jax.lax.cond(accept, on_accept, on_reject, dict({k: c[k] for k in keys}, rec=rec))
-        out.update(h=h_new, tan=r.tangent, status=status, attempts=c["attempts"] + 1)
+        # A size kept after a step that a tangent of another size served (`reuse_band`):
+        # the next step forms its own, which then serves the steps after it exactly.
+        tan = r.tangent
+        tan = eqx.tree_at(lambda a: a.stale, tan, tan.stale | (accept & (h_new == h_try) & (tan.h != h_try)))
+        out.update(h=h_new, tan=tan, status=status, attempts=c["attempts"] + 1)
         return out
 
     # the largest strain of the run so far: the unit of atol on the internal variable

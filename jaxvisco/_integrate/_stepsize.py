@@ -1,11 +1,14 @@
 """Error-controlled steps: `PIDController`.
 
-The controller follows diffrax's `PIDController` (same names and meaning of `rtol`,
-`atol`, `pcoeff`, `icoeff`, `dcoeff`, `dtmin`, `dtmax`, `factormin`, `factormax`,
-`safety`), with the error estimate of `_time_element._estimate` (order k + 1 for cG(k)/eG(k)) and one
-addition for implicit steps, as in Hairer & Wanner's Radau5: a proposed change of the
-step by a factor in ``[1, keep_band]`` keeps the step, so that the stored factorization
-of the condensed tangent (formed for one h) serves the next steps too.
+The controller keeps diffrax's `PIDController` names (`rtol`, `atol`, `pcoeff`, `icoeff`,
+`dcoeff`, `dtmin`, `dtmax`, `factormin`, `factormax`, `safety`), with the error estimate
+of `_time_element._estimate` (order k + 1 for cG(k)/eG(k)), and differs where implicit
+steps with a stored factorization and the run's end error ask for it (issue #62,
+`benchmarks/adaptive_work_precision.py`): the tolerance is the run's, shared out over
+the steps (`over_run`); the internal variable's follows the energy
+(`_estimate.energy_tolerance`); a step size is kept while its error allows and a change
+would not pay for the new tangent (`change_cost`, and Radau5's band `keep_band`); the
+steps divide the run into whole steps.
 
 Every tolerance and bound is a float64 array leaf: a run with another `rtol` reuses the
 compiled program.
@@ -33,40 +36,50 @@ def _positive(name, value, allow_zero=False, allow_inf=False):
     return v
 
 
+# A step's share of the run's tolerance is (h / span) ** RUN_EXPONENT (`over_run`): the
+# steps' errors of the paper's L-shape add up like a random walk (see `PIDController`).
+RUN_EXPONENT = 0.5
+
+
 class PIDController(AbstractStepSizeController):
     r"""Error-controlled step sizes (`simulate(..., stepsize_controller=...)`), with
-    diffrax's names and meaning.
+    diffrax's names.
 
-    Each step's error is estimated from the defect of its own time polynomial (order
-    $k + 1$ for cG(k) and eG(k)); a step is accepted where the estimate, in units of
-    `atol + rtol * scale`, is at most 1, and rejected and retried smaller otherwise. The
-    next step is $h \cdot \mathrm{clip}(s\, e_n^{-(p + i + d)/r} e_{n-1}^{(p + 2d)/r}
-    e_{n-2}^{-d/r},\ f_{min}, f_{max})$ with $r = k + 1$, $s$ `safety`, $p, i, d$ the
-    coefficients; a PI controller by default. A proposed change by a factor within
-    `[1, keep_band]` keeps the step, so that the stored factorization serves the next
-    steps. A step whose Newton solve fails is halved. A step at `dtmin` is accepted
-    whatever its error; a Newton failure there ends the run (`status == "failed"`).
+    The tolerance is that of the run's end: the positions' error over the body's size
+    (`atol` a length, `rtol` relative to the root mean square distance from the
+    centroid) and the energy's over the energy in the frame of the centre of mass. Each
+    step's error is estimated from the defect of its own time polynomial (order $k + 1$)
+    and held to the step's share $\sqrt{h / T}$ of the tolerance ($T$ the run's length;
+    ``scope="step"``: the whole tolerance, as diffrax). The internal variable $\Gamma$ is
+    held to what changes the energy by `rtol` of the body's energy, and at least to
+    `rtol` of its distance from the virgin state with `atol` in units of the largest
+    strain the run has reached (``internal_variable="strain"``: only the latter, which
+    keeps the dissipated energy accurate to `rtol` of itself).
 
-    Positions are measured against their distance from the centroid; the internal
-    variable $\Gamma$ (a strain) against its distance from the virgin state, with
-    `atol` in units of the largest strain $|C - I|$ the run has reached (at least
-    `strain_scale`), so that a body coming to rest keeps the tolerance of its largest
-    deformation. Step sizes are constants of the derivative: `jax.grad` of an adaptive
-    run differentiates it along its accepted steps.
+    A step is accepted where its scaled error is at most 1 and retried smaller
+    otherwise; a failed Newton solve halves it. After an accepted step the integral
+    controller proposes a new size (diffrax's PID form, order $k + 1/2$); the size is
+    kept unless the proposal is longer by more than `keep_band` and saves more than
+    `change_cost` steps of the rest of the run (a new size needs a new factorization).
+    An accepted step is never shortened; a new size divides the rest of the run into
+    whole steps. A step at `dtmin` is accepted whatever its error; a Newton failure
+    there ends the run (`status == "failed"`). Step sizes are constants of the
+    derivative.
 
     **Arguments:**
 
     - `rtol`, `atol`: relative and absolute tolerance (>= 0, at least one positive).
     - `dtmin`, `dtmax`: the smallest and largest step (0 and inf).
-    - `pcoeff`, `icoeff`, `dcoeff`: the PID coefficients (0.2, 0.4, 0; diffrax's
-      default is the integral controller 0, 1, 0).
+    - `pcoeff`, `icoeff`, `dcoeff`: the PID coefficients (0, 1, 0: integral control).
     - `safety`: the safety factor (0.9).
     - `factormin`, `factormax`: the smallest and largest change of the step (0.2, 10).
-    - `keep_band`: keep the step where the proposed factor lies in `[1, keep_band]`
-      (1.2; 1 disables it).
-    - `strain_scale`: the least strain that `atol` on the internal variable is measured
-      in (0). A run continued from another (in chunks, as the `jaxvisco` command runs)
-      passes the earlier run's `Solution.strain_scale`, see `continued`.
+    - `keep_band`: the largest proposed factor that keeps the step (1.2).
+    - `change_cost`: the steps a new step size costs (5; 0: none).
+    - `internal_variable`: ``"energy"`` (default) or ``"strain"`` (above).
+    - `scope`: ``"run"`` (default) or ``"step"`` (above).
+    - `span`: the run's length T (0: ``t1 - t0`` of the call; see `for_run`).
+    - `strain_scale`: the least strain that `atol` on Γ is measured in (0; a
+      continued run passes the earlier one's `Solution.strain_scale`, see `continued`).
 
     **Raises:**
 
@@ -92,10 +105,15 @@ class PIDController(AbstractStepSizeController):
     factormin: jax.Array
     factormax: jax.Array
     keep_band: jax.Array
+    change_cost: jax.Array
+    span: jax.Array
     strain_scale: jax.Array
+    internal_variable: str = eqx.field(static=True)
+    scope: str = eqx.field(static=True)
 
-    def __init__(self, rtol, atol, dtmin=0.0, dtmax=math.inf, pcoeff=0.2, icoeff=0.4, dcoeff=0.0, safety=0.9,
-                 factormin=0.2, factormax=10.0, keep_band=1.2, strain_scale=0.0):
+    def __init__(self, rtol, atol, dtmin=0.0, dtmax=math.inf, pcoeff=0.0, icoeff=1.0, dcoeff=0.0, safety=0.9,
+                 factormin=0.2, factormax=10.0, keep_band=1.2, strain_scale=0.0, change_cost=5.0,
+                 internal_variable="energy", span=0.0, scope="run"):
         rtol = _positive("rtol", rtol, allow_zero=True)
         atol = _positive("atol", atol, allow_zero=True)
         if rtol == 0 and atol == 0:
@@ -119,11 +137,18 @@ class PIDController(AbstractStepSizeController):
         if not 1 <= keep_band <= factormax:
             raise ValueError(f"PIDController: keep_band must be in [1, factormax], got {keep_band!r}.")
         strain_scale = _positive("strain_scale", strain_scale, allow_zero=True)
+        change_cost = _positive("change_cost", change_cost, allow_zero=True)
+        span = _positive("span", span, allow_zero=True)
+        if scope not in ("run", "step"):
+            raise ValueError(f"PIDController: scope must be 'run' or 'step', got {scope!r}.")
+        if internal_variable not in ("energy", "strain"):
+            raise ValueError(f"PIDController: internal_variable must be 'energy' or 'strain', got {internal_variable!r}.")
         f = lambda v: device_array(v, jnp.float64)  # noqa: E731
         self.rtol, self.atol, self.dtmin, self.dtmax = f(rtol), f(atol), f(dtmin), f(dtmax)
         self.pcoeff, self.icoeff, self.dcoeff = f(pcoeff), f(icoeff), f(dcoeff)
         self.safety, self.factormin, self.factormax, self.keep_band = f(safety), f(factormin), f(factormax), f(keep_band)
-        self.strain_scale = f(strain_scale)
+        self.strain_scale, self.change_cost, self.span = f(strain_scale), f(change_cost), f(span)
+        self.internal_variable, self.scope = internal_variable, scope
 
     def continued(self, strain) -> "PIDController":
         """This controller for a run that continues one whose largest strain was `strain`
@@ -134,16 +159,51 @@ class PIDController(AbstractStepSizeController):
             scale = device_array(max(float(self.strain_scale), float(strain)), jnp.float64)
         return eqx.tree_at(lambda c: c.strain_scale, self, scale)
 
-    def accepted_factor(self, order, err, err1, err2):
+    def for_run(self, t0, t1) -> "PIDController":
+        """This controller for a run from `t0` to `t1` that is computed in parts (the
+        command line's chunks): the tolerance is that run's end error, where no `span` is
+        set yet."""
+        if float(self.span) > 0:
+            return self
+        return eqx.tree_at(lambda c: c.span, self, device_array(float(t1) - float(t0), jnp.float64))
+
+    def order(self, k):
+        """The order in h of `over_run`'s error for cG(k)/eG(k): that of the estimate
+        (k + 1), less the share's `RUN_EXPONENT` with ``scope="run"``."""
+        return k + 1 - (RUN_EXPONENT if self.scope == "run" else 0.0)
+
+    def over_run(self, err, h, span):
+        """A step's error `err` (in units of the tolerance) in units of its share
+        ``(h / span) ** RUN_EXPONENT`` of the run's tolerance (``scope="run"``), or
+        `err` itself (``scope="step"``)."""
+        if self.scope == "step":
+            return err
+        return err * (span / h) ** RUN_EXPONENT
+
+    def accepted_factor(self, order, err, err1, err2, steps_left=math.inf):
         """Step growth after an accepted step with errors `err` (this), `err1`, `err2`
-        (the two accepted before it; 1 where there were none)."""
+        (the two accepted before it; 1 where there were none): 1 (keep the step) or the
+        new step over the old. `steps_left`: the rest of the run in steps of this size."""
         tiny = jnp.finfo(jnp.float64).tiny
         e0, e1, e2 = (jnp.maximum(e, tiny) for e in (err, err1, err2))
         expo = lambda c: c / order  # noqa: E731
         factor = (self.safety * e0 ** -expo(self.pcoeff + self.icoeff + self.dcoeff)
                   * e1 ** expo(self.pcoeff + 2.0 * self.dcoeff) * e2 ** -expo(self.dcoeff))
         factor = jnp.clip(factor, self.factormin, self.factormax)
-        return jnp.where((factor >= 1.0) & (factor <= self.keep_band), 1.0, factor)
+        # A longer step pays for its new tangent where it saves more than `change_cost`
+        # steps of the rest of the run, (1 - 1/factor) * steps_left > change_cost; an
+        # accepted step is never shortened (a step that fails is retried shorter).
+        saved = 1.0 - self.change_cost / jnp.maximum(steps_left, tiny)
+        band = jnp.where(saved > 0, jnp.maximum(self.keep_band, 1.0 / jnp.where(saved > 0, saved, 1.0)), jnp.inf)
+        return jnp.where(factor <= band, 1.0, factor)
+
+    def whole_steps(self, h, remaining):
+        """`h` lowered to divide the `remaining` time into whole steps (at most one more
+        than `h` would take), where that keeps it at least `dtmin`: a kept step size then
+        ends the run at `t1` with no short last step (a tangent of its own)."""
+        n = jnp.maximum(jnp.ceil(remaining / h * (1.0 - 1e-9)), 1.0)
+        fitted = remaining / n
+        return jnp.where((remaining > 0) & (fitted >= self.dtmin), fitted, h)
 
     def rejected_factor(self, order, err):
         """Step reduction after a rejected step (`err` > 1)."""

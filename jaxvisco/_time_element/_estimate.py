@@ -170,7 +170,22 @@ def _rms(a, axes):
 GAMMA_ROUNDING_ULPS = 16
 
 
-def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None, strain_scale=0.0):
+def energy_tolerance(scene, state, rtol, energy):
+    r"""The internal variable's tolerance from the energy (a root mean square over the
+    body, as `scaled_error` measures Γ): an error δΓ changes the free energy by
+    $\int \partial\Psi/\partial\Gamma : \delta\Gamma\,dV \le V\,|Y|\,\sqrt{12}\,
+    \mathrm{rms}(\delta\Gamma)$ ($Y = \partial\Psi/\partial\Gamma$ at `state`, $|Y|$ the
+    root mean square of its Frobenius norm over the points, $\sqrt{12}$ from the Voigt
+    root mean square to the Frobenius norm), which this keeps at most `rtol` times
+    `energy`. Infinite where Y vanishes (no viscous stress)."""
+    C = right_cauchy_green(scene.disc.deformation_gradient(state.x))
+    Y = scene.map_points(lambda m, c, g: m.energy_gradient_gamma(c, g), C, state.gamma)
+    y = jnp.sqrt(jnp.mean(jnp.sum(Y * Y, axis=(-2, -1))))
+    bound = jnp.sqrt(12.0) * jnp.sum(scene.disc.JxW) * y
+    return jnp.where(bound > 0, rtol * jnp.maximum(energy, 0.0) / jnp.where(bound > 0, bound, 1.0), jnp.inf)
+
+
+def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None, strain_scale=0.0, energy=None):
     """The step's error estimate in units of the tolerance (accept where <= 1): per group
     (positions, internal variable) the root mean square of the defect over the body,
     divided by that group's `atol * a + rtol * scale`, maximal over the check points and
@@ -200,6 +215,8 @@ def scaled_error(scheme, scene, ctx, U, new, rtol, atol, end_velocities=None, st
         strain = body_strain(scene, new.x)
         a = jnp.maximum(jnp.maximum(strain, strain_scale), jnp.sqrt(jnp.finfo(strain.dtype).eps))
         sg = atol * a + rtol * _rms(sym_to_vec(new.gamma - eye), None)
+        if energy is not None:  # at most the tolerance of Γ itself (|Γ| ~ 1), as of positions
+            sg = jnp.maximum(sg, jnp.minimum(atol + rtol, energy_tolerance(scene, new, rtol, energy)))
         sg = jnp.maximum(sg, GAMMA_ROUNDING_ULPS * jnp.finfo(sg.dtype).eps)
         err = jnp.maximum(err, jnp.max(_rms(e_g, tuple(range(1, e_g.ndim)))) / sg)
     return err, strain

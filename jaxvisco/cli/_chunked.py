@@ -99,6 +99,7 @@ def run_adaptive_chunked(scene, integrator, controller, t0, t_end, dt0=None, chu
     stream = stream or sys.stderr
     solver = solver or jv.NewtonKrylov()
     state, v, t, h = initial_state, initial_velocity, float(t0), dt0
+    controller = controller.for_run(t0, t_end)  # the tolerance is the whole run's, not a chunk's
     start = time.perf_counter()
     if writer is not None and writer.n_frames == 0:
         writer.write_initial_state(t, state, v)
