@@ -356,8 +356,11 @@ def test_a_body_coming_to_rest_takes_fewer_steps_than_the_constant_step():
     assert np.median(h[ts > 30.0]) >= 5.0 * np.median(h[ts < 2.0]), (np.median(h[ts < 2.0]), np.median(h[ts > 30.0]))
 
 
-# ~80 s under the suite's compile flags (three programs: the eG(3) reference, eG(1)
-# adaptive and constant)
+# ~75 s under the suite's compile flags (three programs: the eG(3) reference, eG(1)
+# adaptive and constant). Out of CI since #62: it measures the per-step controller
+# (PER_STEP), no longer the default, and CI's time went to the default's tests
+# (test_the_end_error_follows_the_tolerance; the relaxing body's longer runs).
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_the_paper_scene_takes_half_the_constant_steps_for_the_same_accuracy(lshape):
     """#18's case: the paper's free L-shape to t = 40 (a fast viscous transient, then a
