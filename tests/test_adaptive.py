@@ -428,6 +428,14 @@ def test_bad_input(lshape):
         jv.PIDController(1e-3, 1e-3, safety=1.5)
     with pytest.raises(ValueError, match="strain_scale must be a number >= 0"):
         jv.PIDController(1e-3, 1e-3, strain_scale=-0.1)
+    with pytest.raises(ValueError, match="change_cost must be a number >= 0"):
+        jv.PIDController(1e-3, 1e-3, change_cost=-1.0)
+    with pytest.raises(ValueError, match="span must be a number >= 0"):
+        jv.PIDController(1e-3, 1e-3, span=float("nan"))
+    with pytest.raises(ValueError, match="scope must be 'run' or 'step', got 'steps'"):
+        jv.PIDController(1e-3, 1e-3, scope="steps")
+    with pytest.raises(ValueError, match="internal_variable must be 'energy' or 'strain', got 'gamma'"):
+        jv.PIDController(1e-3, 1e-3, internal_variable="gamma")
     ctrl = jv.PIDController(1e-3, 1e-3)
     with pytest.raises(ValueError, match="Schedule and StepTo fix the steps"):
         jv.simulate(lshape, jv.eG(1), t1=1.0, dt0=[(1.0, 0.1)], stepsize_controller=ctrl)
