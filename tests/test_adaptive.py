@@ -7,6 +7,7 @@ Compilation dominates: every run is the paper's coarse L-shape, most over a shor
 
 import os
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -413,6 +414,25 @@ def test_max_steps_and_early_stop(lshape):
     sol = jv.simulate(rest, jv.eG(1), t1=100.0, dt0=0.1, stepsize_controller=ctrl, saveat=jv.SaveAt(gamma=True),
                       event=jv.Equilibrium(1e-8), max_steps=4, throw=False)
     assert sol.status == "equilibrium" and int(sol.n_steps) == 1
+
+
+@pytest.mark.timeout(600)
+def test_the_last_state_of_a_jitted_run(lshape):
+    """Under `jax.jit` an adaptive run's frames are padded to `max_steps` (`sol.x[-1]` is
+    padding); `sol.state()` is the last valid frame there too, traced or not."""
+    ctrl = jv.PIDController(1e-3, 1e-3)
+
+    def run(scene):
+        return jv.simulate(scene, jv.eG(1), t1=1.0, stepsize_controller=ctrl, max_steps=64)
+
+    plain = run(lshape)
+    padded = eqx.filter_jit(run)(lshape)
+    assert int(padded.n_saved) == len(plain.t) < padded.x.shape[0]
+    # (two compilations of the loop: equal to rounding; the padding is zeros)
+    np.testing.assert_allclose(np.asarray(padded.state().x), np.asarray(plain.state().x), rtol=1e-12)
+    traced = eqx.filter_jit(lambda s: run(s).state(-2).p)(lshape)
+    np.testing.assert_allclose(np.asarray(traced), np.asarray(plain.state(-2).p), rtol=1e-12,
+                               atol=1e-12 * np.abs(np.asarray(plain.state(-2).p)).max())
 
 
 def test_bad_input(lshape):

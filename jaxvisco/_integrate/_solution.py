@@ -144,7 +144,15 @@ class Solution(eqx.Module):
 
     def state(self, i: int = -1) -> State:
         """The `State` of frame `i` (default: the last), e.g. to continue the run with
-        `simulate(..., initial_state=sol.state(), initial_velocity=sol.end_velocity)`."""
+        `simulate(..., initial_state=sol.state(), initial_velocity=sol.end_velocity)`.
+        A negative `i` counts from the last valid frame (`n_saved`), also where the
+        frames are not trimmed: under `jax.jit` an adaptive run's frames are padded to
+        `max_steps`, and `sol.x[-1]` reads the padding."""
+        if isinstance(i, (int, np.integer)) and i < 0 and np.ndim(self.n_saved) == 0:
+            if isinstance(self.n_saved, jax.core.Tracer):
+                i = self.n_saved + i
+            elif int(self.n_saved) + int(i) >= 0:
+                i = int(self.n_saved) + int(i)
         at = lambda a: None if a is None else _index(a, i)  # noqa: E731
         return State(at(self.x), at(self.p), at(self.gamma))
 
