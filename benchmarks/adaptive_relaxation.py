@@ -20,8 +20,11 @@ inside a step, what the estimate controls); constant steps h = 0.25 / m: their s
 ends. For each adaptive run, the fewest constant steps (m = 1, 2, 3, ...; the smallest m
 whose position and internal-variable errors are both at most the adaptive run's) and the
 ratio of the step counts; beside it the same for each measure alone (`ratio_by_measure`).
-Deterministic (counts and errors; wall times for orientation). Writes
-benchmarks/results/adaptive_relaxation.json (`--scene paper`: adaptive_paper_scene_samples.json;
+`--check-ratios 8,4`: instead of the search (slow where the adaptive run is accurate: the
+constant step then needs tens of thousands of steps), the constant step with 8 and 4 times
+the adaptive run's steps, and whether it is less accurate (the ratio is then at least that;
+adaptive_relaxation_ratios.json). Deterministic (counts and errors; wall times for
+orientation). Writes benchmarks/results/adaptive_relaxation.json (`--scene paper`: adaptive_paper_scene_samples.json;
 benchmarks/adaptive_paper_scene.py measures that scene at every step end, with any N).
 """
 
@@ -97,6 +100,10 @@ def main():
     ap.add_argument("--t-end", type=float, default=40.0)
     ap.add_argument("--orders", default="1,2")
     ap.add_argument("--tols", default="1e-3,1e-4")
+    ap.add_argument("--check-ratios", default=None,
+                    help="e.g. 8,4: instead of searching the fewest constant steps, run the constant step with "
+                         "that many times the adaptive run's steps and record whether it is less accurate "
+                         "(writes adaptive_relaxation_ratios.json)")
     args = ap.parse_args()
     scene = relaxing_lshape() if args.scene == "relaxing" else jv.scenes.lshape(dim=2, refinement=1)
     ref = adaptive(scene, 3, 1e-9, args.t_end, solver=TIGHT)
@@ -124,6 +131,20 @@ def main():
                 return fewest(ok)
 
             per_sample = int(round(args.t_end / SAMPLE))
+            if args.check_ratios:
+                row["checks"] = []
+                for r in (float(v) for v in args.check_ratios.split(",")):
+                    m = int(np.ceil(r * row["steps"] / per_sample))
+                    c = errors(constant(scene, k, m, args.t_end), ref)
+                    row["checks"].append(dict(ratio=per_sample * m / row["steps"], constant_steps=per_sample * m,
+                                              constant_error_x=c["x"], constant_error_gamma=c["gamma"],
+                                              constant_error_D=c["D"],
+                                              less_accurate=bool(c["x"] > e["x"] and c["gamma"] > e["gamma"])))
+                    print(f"eG({k}) tol {tol:.0e}: {row['steps']} steps, x {e['x']:.2e}, Γ {e['gamma']:.2e}; "
+                          f"{per_sample * m} constant steps: x {c['x']:.2e}, Γ {c['gamma']:.2e} "
+                          f"(less accurate: {row['checks'][-1]['less_accurate']})", flush=True)
+                out["runs"].append(row)
+                continue
             m = fewest_m(("x", "gamma"))
             c = cache[k, m]
             row.update(constant_h=SAMPLE / m, constant_steps=per_sample * m, constant_error_x=c["x"],
@@ -136,6 +157,8 @@ def main():
                   f"x {c['x']:.2e}, Γ {c['gamma']:.2e}, D {c['D']:.2e}; ratio {row['step_ratio']:.2f}; by measure "
                   + ", ".join(f"{q} {r:.2f}" for q, r in row["ratio_by_measure"].items()), flush=True)
     name = "adaptive_relaxation.json" if args.scene == "relaxing" else "adaptive_paper_scene_samples.json"
+    if args.check_ratios:
+        name = name.replace(".json", "_ratios.json")
     write_json(RESULTS / name, out)
 
 

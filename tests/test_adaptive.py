@@ -338,11 +338,12 @@ def test_a_body_coming_to_rest_takes_fewer_steps_than_the_constant_step():
     rtol = atol = 1e-3 to t = 40; twice its step count of constant steps is less
     accurate in the positions (largest error over the run at t = 0.25 j, against eG(1)
     at 1e-4: the same program), so the constant step needs more than twice the steps
-    for the same accuracy (measured: 1056 steps, h from 0.005 to 0.06, against 2240
-    constant ones with 2.7x the error; the benchmark's constant step needs 8960). Before
-    the internal variable's tolerance kept the run's largest strain as its unit
-    (`PIDController.strain_scale`), the step shrank as the body came to rest (2581
-    steps, the last 0.0012)."""
+    for the same accuracy (measured before #62: 1056 steps, h from 0.005 to 0.06; the
+    benchmark's constant step needed 8960. Since #62's run-scope tolerance: 5476 steps,
+    h from 5.8e-4 to 0.16, and 8x as many constant steps are less accurate in positions,
+    Γ and D). Before the internal variable's tolerance kept the run's largest strain as
+    its unit (`PIDController.strain_scale`), the step shrank as the body came to rest
+    (2581 steps, the last 0.0012)."""
     rx = _benchmark("adaptive_relaxation")
     scene, t_end = rx.relaxing_lshape(), 40.0
     ref = rx.adaptive(scene, 1, 1e-4, t_end)
