@@ -39,8 +39,8 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 from jaxvisco._fem._krylov import gmres  # noqa: E402
-from jaxvisco._integrate._differentiable import record_size  # noqa: E402
-from jaxvisco._integrate._simulate import _run, _segment  # noqa: E402
+from jaxvisco._integrate._differentiable import plan, record_size  # noqa: E402
+from jaxvisco._integrate._simulate import _run  # noqa: E402
 from jaxvisco._solver._newton import solve_step  # noqa: E402
 from jaxvisco._solver._tangent import empty_tangent, form_tangent, schur_solve  # noqa: E402
 from jaxvisco._time_element._step import make_context, predictor, residual, step_outcome  # noqa: E402
@@ -94,10 +94,10 @@ def part(name, dim, refinement, scheme_name, mass):
     t0 = time.perf_counter()
     if name == "simulate":
         # The arguments `simulate` passes for a default constant-step run of 10 steps.
-        segment = _segment(record_size(hs.shape[0]), jv.SaveAt(), jv.RecursiveCheckpointAdjoint())
+        derivative = plan(jv.RecursiveCheckpointAdjoint(), record_size(hs.shape[0]), 1, scheme, scene)
         lowered = _run.lower(scene, scheme, solver, state, jnp.asarray(0.0), hs, jnp.cumsum(hs), jnp.asarray(10), 1,
                              False, None, jv.ConstantStepSize().max_halvings, jnp.zeros_like(state.p),
-                             jnp.asarray(False), segment)
+                             jnp.asarray(False), derivative)
     else:
         lowered = eqx.filter_jit(fn).lower(*args)
     lower_s = time.perf_counter() - t0

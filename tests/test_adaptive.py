@@ -330,30 +330,34 @@ def test_forward_derivative_along_accepted_steps(lshape):
     assert abs(float(value) - float(base.dissipated[-1])) <= 1e-9 * abs(float(base.dissipated[-1]))
 
 
-# ~50 s under the suite's compile flags (two programs: eG(1) adaptive and constant)
+# ~25 s under the suite's compile flags (two programs: eG(1) adaptive and constant)
 @pytest.mark.timeout(900)
 def test_a_body_coming_to_rest_takes_fewer_steps_than_the_constant_step():
     """Where the motion dies out, the step grows with it: the clamped L-shape released
     from a shear swings and comes to rest (`benchmarks/adaptive_relaxation.py`). eG(1) at
-    rtol = atol = 1e-3 to t = 40; twice its step count of constant steps is less
-    accurate in the positions (largest error over the run at t = 0.25 j, against eG(1)
-    at 1e-4: the same program), so the constant step needs more than twice the steps
-    for the same accuracy (measured before #62: 1056 steps, h from 0.005 to 0.06; the
-    benchmark's constant step needed 8960. Since #62's run-scope tolerance: 5476 steps,
-    h from 5.8e-4 to 0.16, and 8x as many constant steps are less accurate in positions,
-    Γ and D). Before the internal variable's tolerance kept the run's largest strain as
-    its unit (`PIDController.strain_scale`), the step shrank as the body came to rest
-    (2581 steps, the last 0.0012)."""
+    rtol = atol = 1e-3 to t = 40; 8x its step count of constant steps is less accurate
+    in the positions and the internal variable (largest errors over the run at
+    t = 0.25 j, against eG(1) at 1e-4: the same program), so the constant step needs
+    more than 8x the steps for the same accuracy (#62's target), and the run's position
+    error is within [0.1, 10] x tol. Measured: 1326 steps, h from 0.0028 to 0.12,
+    position error 1.2e-3; the constant step with 8x the steps 1.9e-3 (against eG(3) at
+    1e-9: 1.2e-3 and 1.9e-3). With the whole run as every step's horizon (before the
+    dissipation's horizon, `PIDController.horizon`) the same tolerance took 5476 steps for
+    an error of 1.2e-4, and at 1e-4 the gain fell between 4x and 8x. Before the internal
+    variable's tolerance kept the run's largest strain as its unit
+    (`PIDController.strain_scale`), the step shrank as the body came to rest (2581
+    steps, the last 0.0012)."""
     rx = _benchmark("adaptive_relaxation")
-    scene, t_end = rx.relaxing_lshape(), 40.0
-    ref = rx.adaptive(scene, 1, 1e-4, t_end)
-    sol = rx.adaptive(scene, 1, 1e-3, t_end)
+    scene, t_end, tol = rx.relaxing_lshape(), 40.0, 1e-3
+    ref = rx.adaptive(scene, 1, 0.1 * tol, t_end)
+    sol = rx.adaptive(scene, 1, tol, t_end)
     assert sol.status == "done" and ref.status == "done"
     n = int(sol.n_steps)
-    e_x = rx.errors(sol, ref)["x"]
-    m = int(np.ceil(2 * n * rx.SAMPLE / t_end))  # h = SAMPLE / m: at least 2 n steps
-    c_x = rx.errors(rx.constant(scene, 1, m, t_end), ref)["x"]
-    assert c_x > e_x, (n, m, e_x, c_x)
+    e = rx.errors(sol, ref)
+    assert 0.1 <= e["x"] / tol <= 10.0, e
+    m = int(np.ceil(8 * n * rx.SAMPLE / t_end))  # h = SAMPLE / m: at least 8 n steps
+    c = rx.errors(rx.constant(scene, 1, m, t_end), ref)
+    assert c["x"] > e["x"] and c["gamma"] > e["gamma"], (n, m, e, c)
     h, ts = np.asarray(sol.step_h), np.asarray(sol.step_t)
     assert np.median(h[ts > 30.0]) >= 5.0 * np.median(h[ts < 2.0]), (np.median(h[ts < 2.0]), np.median(h[ts > 30.0]))
 

@@ -94,7 +94,9 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
     diag0 = scene.diagnostics(state0, v_state0)
     H0 = diag0["energy"]
     by_energy = ctrl.internal_variable == "energy" and state0.gamma is not None
-    total_mass = scene.mass() if by_energy else None
+    # the body's energy: the internal variable's tolerance and the run's horizon
+    with_energy = state0.gamma is not None and (by_energy or ctrl.scope == "run")
+    total_mass = scene.mass() if with_energy else None
     dense = ts_out is not None
     n_frames = ts_out.shape[0] if dense else 1 + -(-capacity // save_every)
     frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
@@ -120,12 +122,13 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
                                             velocity=vm_end if rates else None, new=new)
         dissipated, work = c["dissipated"] + D, c["work"] + W
         energy = None
-        if by_energy:  # the energy of the step's end less that of its centre of mass's flight
+        if with_energy:  # the energy of the step's end less that of its centre of mass's flight
             P = jnp.sum(new.p, axis=0)
             energy = H0 - dissipated + work - 0.5 * jnp.vdot(P, P) / total_mass
         err, strain = scaled_error(scheme, scene, ctx, r.U, new, ctrl.rtol, ctrl.atol,
-                                   (c["vm"], vm_end) if rates else None, c["strain"], energy)
-        err = jnp.where(ok & jnp.isfinite(err), ctrl.over_run(err, h_try, span), jnp.inf)
+                                   (c["vm"], vm_end) if rates else None, c["strain"], energy if by_energy else None)
+        horizon = ctrl.horizon(span, h_try, t_next - t0, energy, dissipated)
+        err = jnp.where(ok & jnp.isfinite(err), ctrl.over_run(err, h_try, horizon), jnp.inf)
         at_min = h_try <= ctrl.dtmin * (1.0 + 1e-12)
         accept = ok & ((err <= 1.0) | at_min)
         i = c["i"]

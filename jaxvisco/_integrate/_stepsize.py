@@ -5,10 +5,11 @@ The controller keeps diffrax's `PIDController` names (`rtol`, `atol`, `pcoeff`, 
 of `_time_element._estimate` (order k + 1 for cG(k)/eG(k)), and differs where implicit
 steps with a stored factorization and the run's end error ask for it (issue #62,
 `benchmarks/adaptive_work_precision.py`): the tolerance is the run's, shared out over
-the steps (`over_run`); the internal variable's follows the energy
-(`_estimate.energy_tolerance`); a step size is kept while its error allows and a change
-would not pay for the new tangent (`change_cost`, and Radau5's band `keep_band`); the
-steps divide the run into whole steps.
+the steps (`over_run`) of the time over which their errors count (`horizon`); the
+internal variable's follows the energy (`_estimate.energy_tolerance`); a step size is
+kept while its error allows and a change would not pay for the new tangent
+(`change_cost`, and Radau5's band `keep_band`); the steps divide the run into whole
+steps.
 
 Every tolerance and bound is a float64 array leaf: a run with another `rtol` reuses the
 compiled program.
@@ -49,8 +50,10 @@ class PIDController(AbstractStepSizeController):
     (`atol` a length, `rtol` relative to the root mean square distance from the
     centroid) and the energy's over the energy in the frame of the centre of mass. Each
     step's error is estimated from the defect of its own time polynomial (order $k + 1$)
-    and held to the step's share $\sqrt{h / T}$ of the tolerance ($T$ the run's length;
-    ``scope="step"``: the whole tolerance, as diffrax). The internal variable $\Gamma$ is
+    and held to the step's share $\sqrt{h / T}$ of the tolerance ($T$ the run's length,
+    or, where shorter, the time in which the body would dissipate its energy at its mean
+    rate so far: a damped body forgets its errors over that time; ``scope="step"``: the
+    whole tolerance, as diffrax). The internal variable $\Gamma$ is
     held to what changes the energy by `rtol` of the body's energy, and at least to
     `rtol` of its distance from the virgin state with `atol` in units of the largest
     strain the run has reached (``internal_variable="strain"``: only the latter, which
@@ -171,6 +174,18 @@ class PIDController(AbstractStepSizeController):
         """The order in h of `over_run`'s error for cG(k)/eG(k): that of the estimate
         (k + 1), less the share's `RUN_EXPONENT` with ``scope="run"``."""
         return k + 1 - (RUN_EXPONENT if self.scope == "run" else 0.0)
+
+    def horizon(self, span, h, elapsed, energy, dissipated):
+        """The time over which a step's error counts (``scope="run"``): the run's `span`,
+        or, where shorter, the time in which the body dissipates its `energy` (in the frame
+        of its centre of mass) at the mean rate of the run so far, `dissipated` over
+        `elapsed`: a damped body forgets its errors over that time, so they do not add up
+        over the whole run (at least `h`; `energy` None: `span`)."""
+        if energy is None or self.scope == "step":
+            return span
+        lost = dissipated > 0
+        memory = jnp.where(lost, energy * elapsed / jnp.where(lost, dissipated, 1.0), span)
+        return jnp.clip(memory, h, span)
 
     def over_run(self, err, h, span):
         """A step's error `err` (in units of the tolerance) in units of its share
