@@ -249,6 +249,22 @@ def test_the_end_error_follows_the_tolerance(lshape):
     assert all(0.1 <= r <= 10.0 for r in ratios), ratios
 
 
+def test_the_horizon_is_the_run_or_the_time_to_dissipate_the_energy():
+    """`PIDController.horizon`: the run's length where nothing is dissipated (or no
+    energy is known, or ``scope="step"``), the energy over the mean dissipation rate
+    where that is shorter, never below the step."""
+    ctrl = jv.PIDController(1e-3, 1e-3)
+    span, h = 40.0, 0.01
+    horizon = lambda *a: float(ctrl.horizon(span, h, *a))  # noqa: E731
+    assert horizon(2.0, 5.0, 0.0) == span                     # undamped
+    assert horizon(2.0, None, 1.0) == span                    # no internal variable
+    assert horizon(2.0, 5.0, 1.0) == pytest.approx(10.0)      # E t / D = 5 * 2 / 1
+    assert horizon(2.0, 5.0, 1e-6) == span                    # longer than the run
+    assert horizon(2.0, 1e-9, 1.0) == h                       # at rest: at least the step
+    step = jv.PIDController(1e-3, 1e-3, scope="step")
+    assert float(step.horizon(span, h, 2.0, 5.0, 1.0)) == span
+
+
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("k", [2, 3])
 def test_a_tight_tolerance_starts_from_an_undeformed_body(lshape, k):
