@@ -245,6 +245,10 @@ def jit(fn=None, *, export=False, plain=False):
     `export=True` (the time loops): at top level, with JAX's persistent cache on
     (`enable_compilation_cache`), the traced program is kept on disk too and a later
     process skips tracing it (`_export`); calls the key cannot describe run as usual.
+    Inside a trace the time loops are traced inline, not as a nested `filter_jit`: a
+    derivative (`jax.grad`, `jax.jacfwd`) of a nested jit traces its body plainly first
+    and differentiates that jaxpr, so the loop was traced twice, once for nothing (its
+    custom derivative's rule traces it again).
 
     `plain=True`: `jax.jit` instead of `filter_jit` (every argument an array): the least
     call overhead, for functions a host-driven solver calls thousands of times."""
@@ -265,7 +269,10 @@ def jit(fn=None, *, export=False, plain=False):
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if export and _export.directory() is not None and _top_level():
+        top = _top_level()
+        if export and not top:
+            return fn(*args, **kwargs)
+        if export and _export.directory() is not None:
             try:
                 return _export.call(fn, name, args, kwargs, compiler_options())
             except _export.Uncacheable:
