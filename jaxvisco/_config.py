@@ -269,14 +269,14 @@ def jit(fn=None, *, export=False, plain=False):
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        top = _top_level()
-        if export and not top:
-            return fn(*args, **kwargs)
-        if export and _export.directory() is not None:
-            try:
-                return _export.call(fn, name, args, kwargs, compiler_options())
-            except _export.Uncacheable:
-                pass
+        if export:
+            if not _top_level():
+                return fn(*args, **kwargs)
+            if _export.directory() is not None:
+                try:
+                    return _export.call(fn, name, args, kwargs, compiler_options())
+                except _export.Uncacheable:
+                    pass
         return get()(*args, **kwargs)
 
     call.lower = lambda *args, **kwargs: get().lower(*args, **kwargs)
