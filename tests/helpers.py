@@ -11,6 +11,16 @@ import jax.numpy as jnp
 import numpy as np
 
 
+def default_optimization_env():
+    """`subprocess_env()` without the cheap-optimization XLA flags that conftest.py sets
+    (`TEST_XLA_FLAGS`): for a subprocess that runs its programs far more often than it
+    compiles them (fits)."""
+    cheap = ("--xla_backend_optimization_level", "--xla_llvm_disable_expensive_passes")
+    env = subprocess_env()
+    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split() if f.split("=")[0] not in cheap)
+    return env
+
+
 def subprocess_env():
     """Environment for a jaxvisco subprocess: the tests' XLA flags (conftest.py), unbuffered
     output (progress lines arrive as they are printed), the test session's compilation

@@ -31,7 +31,7 @@ import textwrap
 
 import jax
 import pytest
-from helpers import subprocess_env
+from helpers import default_optimization_env, subprocess_env
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), os.pardir))
 SNIPPET = re.compile(r'^(\s*)--8<-- "([^"]+)"\s*$', re.M)
@@ -163,9 +163,15 @@ def run_command(line, where, folder):
         out.write_text(buf.getvalue())
 
 
-@pytest.mark.timeout(900)
-@pytest.mark.parametrize("page", pages())
-def test_page_code_blocks_run(page, scratch):
+# Pages whose code runs its compiled programs far more often than it compiles them (fits:
+# dozens of runs with their tangents). They run in a subprocess with XLA's default
+# optimization instead of the suite's cheap-compile flags (conftest.py), under which the
+# identification guide took 230 s instead of 126 s.
+RUN_BOUND = ("docs/guide/identification.md",)
+
+
+def run_page(page, folder):
+    """Every block of `page` in order, in one namespace, in `folder` (the current directory)."""
     with open(os.path.join(ROOT, page), encoding="utf-8") as f:
         text = f.read()
     namespace = {"__name__": "__doc_example__"}
@@ -175,7 +181,21 @@ def test_page_code_blocks_run(page, scratch):
             assert skip.strip(), f"{where}: a skipped block needs its reason"
             continue
         with contextlib.redirect_stdout(open(os.devnull, "w")):
-            run_block(lang, body, where, namespace, scratch, include)
+            run_block(lang, body, where, namespace, folder, include)
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("page", pages())
+def test_page_code_blocks_run(page, scratch):
+    if page not in RUN_BOUND:
+        run_page(page, scratch)
+        return
+    env = default_optimization_env()
+    env["PYTHONPATH"] = os.pathsep.join([ROOT, os.path.dirname(__file__)] + [p for p in sys.path if p])
+    env["MPLBACKEND"] = "Agg"
+    p = subprocess.run([sys.executable, __file__, page], cwd=scratch, env=env, capture_output=True, text=True,
+                       timeout=840)
+    assert p.returncode == 0, f"{page}:\n{p.stderr[-3000:]}"
 
 
 def docstring_objects():
@@ -200,3 +220,10 @@ def test_docstring_examples_run(scratch):
                 exec(compile(body, f"{name} docstring, block {i + 1}", "exec"), {"__name__": "__doc_example__"})
             ran += 1
     assert ran >= 25, ran
+
+
+if __name__ == "__main__":  # one page's blocks, in the current directory (`RUN_BOUND`)
+    import pathlib
+
+    jax.config.update("jax_enable_x64", True)
+    run_page(sys.argv[1], pathlib.Path.cwd())

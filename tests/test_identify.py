@@ -47,3 +47,65 @@ def test_identify_rejects_bad_input():
         jv.Experiment(scene, jv.eG(1), [0.0, 0.1, 0.2], np.ones((3, 2)), jv.Quantity("dissipated"), dt0=0.1)
     with pytest.raises(ValueError, match="field must be one of"):
         jv.Quantity("energies")
+
+
+def _marker_test(name, column):
+    """The example's test (markers on the flying L-shape, T = 1, h = 0.1) with a name for
+    the test and for its first column."""
+    iv = _example()
+    scene = jv.scenes.lshape(dim=2, refinement=1)
+    times = np.linspace(0.0, 1.0, 11)
+    markers = [jv.Extensometer(scene.mesh, iv.MARKERS[a], iv.MARKERS[b], name=f"{column} {a}-{b}")
+               for a, b in iv.PAIRS]
+    return jv.Experiment(scene, jv.eG(1), times, np.zeros((11, len(markers))), markers, dt0=0.1, name=name)
+
+
+def test_sensitivities_are_the_runs_model_and_its_derivatives():
+    """`Experiment.sensitivities`: the model equals `model(run())` at the same values, to
+    rounding; each derivative matches central differences of runs (step 1e-3 of the value,
+    so truncation ~1e-6 relative)."""
+    e = _marker_test("markers", "gauge")
+    values = {"eta_dev": 50000.0, "eta_vol": 10000.0}
+    model, derivatives = e.sensitivities(values)
+
+    def run(v):
+        return np.asarray(e.model(e.run(jv.with_parameters(e.scene, v))))
+
+    ref = run(values)
+    assert model.shape == ref.shape == (11, 3)
+    np.testing.assert_allclose(model, ref, rtol=0, atol=1e-12 * np.max(np.abs(ref)))
+    assert sorted(derivatives) == sorted(values)
+    for k, v in values.items():
+        h = 1e-3 * v
+        fd = (run({**values, k: v + h}) - run({**values, k: v - h})) / (2 * h)
+        assert np.max(np.abs(fd)) > 0
+        np.testing.assert_allclose(derivatives[k], fd, rtol=0, atol=1e-5 * np.max(np.abs(fd)))
+    with pytest.raises(ValueError, match="Experiment.sensitivities: unknown parameter 'eta'"):
+        e.sensitivities({"eta": 1.0})
+
+
+def test_fit_reuses_the_sensitivities_program_whatever_the_names():
+    """A fit evaluates by the program `sensitivities` compiled for the same layout, also
+    where the test and its columns are named otherwise (names only label reports): no
+    residual + Jacobian program is compiled during the fit."""
+    import jax
+
+    values = {"eta_dev": 50000.0, "eta_vol": 10000.0}
+    data, _ = _marker_test("truth", "gauge").sensitivities(values)
+    renamed = _marker_test("renamed", "marker")
+    renamed = jv.Experiment(renamed.scene, renamed.integrator, np.asarray(renamed.times), data, renamed.observe,
+                            dt0=0.1, name="renamed")
+    compiled = []
+
+    def listen(event, duration, fun_name=None, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(fun_name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        fit = jv.identify(renamed, {"eta_dev": 40000.0, "eta_vol": 12000.0}, max_iterations=3)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert fit.names == ("eta_dev", "eta_vol") and renamed.labels[0].startswith("marker")
+    assert "jit(_block)" not in compiled, compiled
+    assert not any("_run" in str(f) or "_iteration" in str(f) for f in compiled), compiled

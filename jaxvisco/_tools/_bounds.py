@@ -31,17 +31,19 @@ class Bounds(eqx.Module):
 
     **Fields:** `lower`, `upper` (arrays `(p,)`, `-inf`/`inf` where unbounded); `scale`
     (`(p,)`: a free parameter is $x = $ `scale` $z$, so that every unconstrained variable
-    is dimensionless); `kinds` (static tuple of transform codes, one per parameter).
+    is dimensionless); `kinds` (`(p,)` integer transform codes; an array, not a static
+    field, so that a fit's program does not depend on which kind of bound each parameter
+    has: every transform is evaluated and one selected).
     """
 
     lower: jax.Array
     upper: jax.Array
     scale: jax.Array
-    kinds: tuple = eqx.field(static=True)
+    kinds: jax.Array
 
     def to_physical(self, z):
         """Physical values `x` `(p,)` of unconstrained values `z` `(p,)`."""
-        kinds = np.asarray(self.kinds)
+        kinds = self.kinds
         lo = jnp.where(jnp.isfinite(self.lower), self.lower, 0.0)
         hi = jnp.where(jnp.isfinite(self.upper), self.upper, 1.0)
         # Every branch sees safe arguments (finite bounds; exp of a clipped z where the
@@ -62,7 +64,7 @@ class Bounds(eqx.Module):
     def to_unconstrained(self, x):
         """Unconstrained values `z` `(p,)` of physical values `x` strictly inside the
         bounds (the inverse of `to_physical`)."""
-        kinds = np.asarray(self.kinds)
+        kinds = self.kinds
         x = jnp.asarray(x, dtype=jnp.float64)
         lo = jnp.where(jnp.isfinite(self.lower), self.lower, 0.0)
         hi = jnp.where(jnp.isfinite(self.upper), self.upper, 1.0)
@@ -128,4 +130,5 @@ def make_bounds(start, lower, upper, names) -> Bounds:
         scale = jnp.asarray(np.where(x0 != 0, np.abs(x0), 1.0))
     else:
         scale = jnp.ones(p)
-    return Bounds(lower=jnp.asarray(lower), upper=jnp.asarray(upper), scale=scale, kinds=tuple(kinds))
+    return Bounds(lower=jnp.asarray(lower), upper=jnp.asarray(upper), scale=scale,
+                  kinds=jnp.asarray(kinds, dtype=jnp.int32))

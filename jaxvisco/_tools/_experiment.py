@@ -196,6 +196,28 @@ class Experiment(eqx.Module):
         out = jnp.concatenate([o(solution) for o in self.observe], axis=1)
         return jnp.where(solution.status_code == FAILED, jnp.inf, out)
 
+    def sensitivities(self, parameters: dict):
+        """What the observables read off the test's run with `parameters` (name -> value,
+        as `identify` takes them; the others as the scene has them) and their
+        derivatives in each parameter: which columns, at which times, see a parameter,
+        before a test is run or a fit is tried; or synthetic data.
+
+        **Returns:**
+
+        `(model, derivatives)`: the model `(m, c)` as `model(run())` gives it with these
+        values, and parameter name -> `(m, c)` array of its derivatives (forward mode
+        through the run). Computed by the program that a fit of the same parameters
+        (`identify(self, parameters)`) evaluates at each iteration, so that the fit
+        compiles nothing new for this test.
+
+        **Raises:**
+
+        `ValueError` as `identify` does for unknown parameters.
+        """
+        from ._identify import sensitivities
+
+        return sensitivities(self, parameters)
+
     def scale(self) -> jnp.ndarray:
         """What each column's residuals are divided by, `(c,)`: `sigma`, or the data's
         root mean square."""

@@ -10,6 +10,8 @@ and which parameters the data do not determine. L-BFGS (optax) on the same cost 
 kept as ``method="lbfgs"``.
 """
 
+import copy
+import dataclasses
 import functools
 import time
 from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
@@ -331,11 +333,58 @@ def _residuals(values, problem):
     return jnp.concatenate(out)
 
 
+def _parameters(parameters, exps, where):
+    """The names, start values, lower and upper bounds of a fit's `parameters` (name ->
+    start value or `Parameter`), checked against the experiments `exps`."""
+    if not parameters:
+        raise ValueError(f"{where}: parameters must name at least one parameter, e.g. {{'eta_dev': 1e4}}.")
+    specs = {}
+    for n, v in parameters.items():
+        if n not in PARAMETERS:
+            raise ValueError(f"{where}: unknown parameter {n!r}; accepted: {sorted(PARAMETERS)}.")
+        specs[n] = v if isinstance(v, Parameter) else Parameter(v)
+        if n in ("lam_neq", "mu_neq") and any(e.scene.material.nonequilibrium is None for e in exps):
+            raise ValueError(f"{where}: {n} belongs to the non-equilibrium branch, which a scene here lacks "
+                             "(an elastic material).")
+    keys = tuple(specs)
+    return (keys, np.array([specs[n].start for n in keys]), np.array([specs[n].lower for n in keys]),
+            np.array([specs[n].upper for n in keys]))
+
+
+def sensitivities(experiment, parameters):
+    """`Experiment.sensitivities`: the model and its derivatives, from the program of a
+    fit of `parameters` (`least_squares.evaluate`)."""
+    from ._least_squares import evaluate
+
+    keys, values, lower, upper = _parameters(parameters, [experiment], "Experiment.sensitivities")
+    residuals, args = _by_experiment(_Problem((experiment,), keys))
+    r, J = evaluate(residuals[0], args[0], values, lower, upper)
+    m, c = np.shape(experiment.data)
+    scale = np.asarray(experiment.scale())
+    model = np.asarray(r).reshape(m, c) * scale + np.asarray(experiment.data)
+    J = np.asarray(J).reshape(m, c, len(keys)) * scale[None, :, None]
+    return model, {n: J[..., i] for i, n in enumerate(keys)}
+
+
+def _unlabelled(module, **fields):
+    """A copy of `module` with `fields` replaced and its `name` blanked where that is a
+    static field (an experiment's, an observable's): names only label reports and plots,
+    and as static fields they would make two experiments that differ in nothing else two
+    compiled programs (a fit file names a marker's column, Python need not)."""
+    out = copy.copy(module)
+    if any(f.name == "name" and f.metadata.get("static") for f in dataclasses.fields(module)):
+        fields["name"] = ""
+    for k, v in fields.items():
+        object.__setattr__(out, k, v)
+    return out
+
+
 def _by_experiment(problem):
     """`least_squares`'s residual blocks and their arguments: one per experiment (one
-    function, so that an experiment's program serves every fit it is part of; the blocks
-    run in parallel threads)."""
-    return (_residuals,) * len(problem.experiments), tuple(_Problem((e,), problem.names) for e in problem.experiments)
+    function, so that an experiment's program serves every fit it is part of, whatever
+    the names of the test and its columns; the blocks run in parallel threads)."""
+    exps = tuple(_unlabelled(e, observe=tuple(map(_unlabelled, e.observe))) for e in problem.experiments)
+    return (_residuals,) * len(exps), tuple(_Problem((e,), problem.names) for e in exps)
 
 
 def _progress(step, cost, values):
@@ -505,22 +554,9 @@ def identify(experiments: "Experiment | Sequence[Experiment]", parameters: Optio
     names = [e.name for e in exps]
     if len(set(names)) != len(names):
         raise ValueError(f"identify: experiments need distinct names, got {names}.")
-    if not parameters:
-        raise ValueError("identify: parameters must name at least one parameter, e.g. {'eta_dev': 1e4}.")
-    specs = {}
-    for n, v in parameters.items():
-        if n not in PARAMETERS:
-            raise ValueError(f"identify: unknown parameter {n!r}; accepted: {sorted(PARAMETERS)}.")
-        specs[n] = v if isinstance(v, Parameter) else Parameter(v)
-        if n in ("lam_neq", "mu_neq") and any(e.scene.material.nonequilibrium is None for e in exps):
-            raise ValueError(f"identify: {n} belongs to the non-equilibrium branch, which a scene here lacks "
-                             "(an elastic material).")
+    keys, start, lower, upper = _parameters(parameters, exps, "identify")
     if method not in ("lm", "lbfgs"):
         raise ValueError(f"identify: method must be 'lm' or 'lbfgs', got {method!r}.")
-    keys = tuple(specs)
-    start = np.array([specs[n].start for n in keys])
-    lower = np.array([specs[n].lower for n in keys])
-    upper = np.array([specs[n].upper for n in keys])
     problem = _Problem(tuple(exps), keys)
     known = all(e.sigma is not None for e in exps)
     common = dict(lower=lower, upper=upper, names=keys, absolute_sigma=known, xtol=xtol, ftol=ftol, gtol=gtol,

@@ -21,13 +21,16 @@ How it is built, and why (numbers: `benchmarks/least_squares_solver.py`, results
    in every direction it needed 57 and 118 evaluations in all on the benchmark's two
    problems (8 and 16 starts, exact data), optimistix's `LevenbergMarquardt` 82 and
    187; with noise 64 and 128 against 120 and 272.
-3. One iteration (one residual + Jacobian evaluation, its acceptance, the next trial) is
-   one function. Called at top level, `least_squares` compiles it once and drives it from
-   the host; under `jax.vmap` or `jax.jit` (a batch of fits over data sets, noise seeds
-   or start points) it runs in a `lax.while_loop`. Host-driven, XLA compiles the
+3. One iteration is one residual + Jacobian evaluation (`_block`) and its acceptance, the
+   convergence tests and the next trial (`_advance`). Called at top level,
+   `least_squares` compiles the two as programs of their own and drives them from the
+   host; under `jax.vmap` or `jax.jit` (a batch of fits over data sets, noise seeds or
+   start points) they run in a `lax.while_loop`. Host-driven, XLA compiles the
    residual's own loops without nesting them in another: nested, the iteration with a
    20-step `simulate` residual took 1.5-1.8 times as long to compile (`--compile` in the
-   benchmark). A rejected trial keeps the last Jacobian.
+   benchmark). The evaluation alone is also what `evaluate` runs (an experiment's
+   sensitivities, `Experiment.sensitivities`), so that a fit reuses its program. A
+   rejected trial keeps the last Jacobian.
 4. Statistics come from the SVD of the column-scaled Jacobian: a rank-deficient Jacobian
    gives finite numbers and flags, never NaN.
 5. A residual given in blocks (several experiments of a joint fit) is evaluated block by
@@ -356,19 +359,15 @@ def _solve(residuals, sizes, z0, args, sigma, bounds, options, max_steps, callba
         lam=f64(1e-2), scale=f64(1.0), evaluations=i32(0), steps=i32(0), status=i32(RUNNING),
         history_cost=f64(jnp.full(max_steps + 1, jnp.nan)), history_z=f64(jnp.full((max_steps + 1, p), jnp.nan)),
     )  # fmt: skip
-    if _top_level() and len(residuals) > 1:  # see the module notes (3., 5.)
+    if _top_level():  # see the module notes (3., 5.)
         with concurrent.futures.ThreadPoolExecutor(min(len(residuals), os.cpu_count() or 1)) as pool:
-            evaluate = _first_block
+            run_block = _first_block
             while int(state.status) == RUNNING:
-                blocks = list(pool.map(evaluate, _blocks(problem, state.trial)))
-                evaluate = lambda b: _block_jit(*b)  # noqa: E731
+                blocks = list(pool.map(run_block, _blocks(problem, state.trial)))
+                run_block = lambda b: _block_jit(*b)  # noqa: E731
                 J = jnp.concatenate([b[0] for b in blocks])
                 r = jnp.concatenate([b[1] for b in blocks])
                 state = _advance_jit(problem, state, J, r)
-        return _statistics_jit(problem, state, names, confidence)
-    if _top_level():  # see the module notes (3.)
-        while int(state.status) == RUNNING:
-            state = _iteration_jit(problem, state)
         return _statistics_jit(problem, state, names, confidence)
     state = jax.lax.while_loop(lambda s: s.status == RUNNING, lambda s: _iteration(problem, s), state)
     return _statistics(problem, state, names, confidence)
@@ -386,6 +385,20 @@ def _first_block(block):
         lowered = _block_jit.lower(*block)
     lowered.compile()
     return _block_jit(*block)
+
+
+def evaluate(residual, args, values, lower=None, upper=None):
+    """A residual `residual(x, args)` `(m,)` and its Jacobian `(m, p)` in the parameters at
+    `values` `(p,)` (bounds: as `least_squares`'), by the program a fit of them evaluates
+    at each iteration: a fit after this call compiles nothing new for it."""
+    values = np.asarray(values, dtype=np.float64)
+    names = tuple(f"x{i}" for i in range(values.size))
+    bounds = make_bounds(values, lower, upper, names)
+    z = bounds.to_unconstrained(jnp.asarray(values))
+    m = eqx.filter_eval_shape(residual, jnp.zeros(values.size), args).shape[0]
+    J, r = _block_jit(residual, args, jnp.ones(m), bounds, z)
+    dxdz = jax.jvp(bounds.to_physical, (z,), (jnp.ones_like(z),))[1]
+    return r, J / dxdz
 
 
 def _block(residual, args, sigma, bounds, z):
@@ -505,7 +518,6 @@ def _statistics(problem: _Problem, s: _State, names, confidence) -> LeastSquares
     )  # fmt: skip
 
 
-_iteration_jit = jit(_iteration)
 _statistics_jit = jit(_statistics)
 _advance_jit = jit(_advance)
 _block_jit = jit(_block)
