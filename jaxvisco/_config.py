@@ -279,5 +279,17 @@ def jit(fn=None, *, export=False, plain=False):
                     pass
         return get()(*args, **kwargs)
 
+    def ahead(*args, **kwargs):
+        """Trace (or, exported, load) the program of a call ahead of it, without compiling:
+        returns the `Lowered` program to compile, or None where the exported path holds it."""
+        if export and _top_level() and _export.directory() is not None:
+            try:
+                _export.prepare(fn, name, args, kwargs, compiler_options())
+                return None
+            except _export.Uncacheable:
+                pass
+        return get().lower(*args, **kwargs)
+
     call.lower = lambda *args, **kwargs: get().lower(*args, **kwargs)
+    call.ahead = ahead
     return call

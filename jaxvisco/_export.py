@@ -430,6 +430,28 @@ def call(fn, name, args, kwargs, options):
     """`fn(*args, **kwargs)` as a compiled program, from an exported entry where one is
     stored (exporting and storing it otherwise). Raises `Uncacheable` where the key
     cannot describe the static arguments; the caller then runs `fn` the usual way."""
+    entry, leaves = prepare(fn, name, args, kwargs, options)
+    runner = entry.get("runner")
+    if runner is None:
+        exported = entry["exported"]
+
+        def run(*xs):
+            return exported.call(*xs)
+
+        run.__name__ = run.__qualname__ = "exported_" + name.rsplit(".", 1)[-1]
+        runner = entry["runner"] = jax.jit(run, compiler_options=options or None)
+    # Committed (outputs of an earlier run) and uncommitted (new) arrays would compile the
+    # exported program twice (seen: the command line's chunks); commit every input.
+    out_leaves = runner(*jax.device_put(leaves, jax.devices()[0]))
+    dyn_out = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(entry["out_skeleton"]), out_leaves)
+    return eqx.combine(dyn_out, entry["out_static"])
+
+
+def prepare(fn, name, args, kwargs, options):
+    """What `call` runs, ahead of it: the entry of `fn` at these arguments, loaded or
+    traced and stored (the Python half of a first call: a caller that traces several
+    programs in threads does this one at a time), and the arguments' array leaves.
+    Raises `Uncacheable` as `call`."""
     folder = directory()
     if folder is None:
         raise Uncacheable("no persistent cache directory")
@@ -467,17 +489,4 @@ def call(fn, name, args, kwargs, options):
         except (OSError, Unstorable, ValueError):
             pass  # a read-only or full cache directory, or an output it cannot describe: run without storing
     _memory[key] = entry
-    runner = entry.get("runner")
-    if runner is None:
-        exported = entry["exported"]
-
-        def run(*xs):
-            return exported.call(*xs)
-
-        run.__name__ = run.__qualname__ = "exported_" + name.rsplit(".", 1)[-1]
-        runner = entry["runner"] = jax.jit(run, compiler_options=options or None)
-    # Committed (outputs of an earlier run) and uncommitted (new) arrays would compile the
-    # exported program twice (seen: the command line's chunks); commit every input.
-    out_leaves = runner(*jax.device_put(leaves, jax.devices()[0]))
-    dyn_out = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(entry["out_skeleton"]), out_leaves)
-    return eqx.combine(dyn_out, entry["out_static"])
+    return entry, leaves

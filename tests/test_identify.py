@@ -109,3 +109,45 @@ def test_fit_reuses_the_sensitivities_program_whatever_the_names():
     assert fit.names == ("eta_dev", "eta_vol") and renamed.labels[0].startswith("marker")
     assert "jit(_block)" not in compiled, compiled
     assert not any("_run" in str(f) or "_iteration" in str(f) for f in compiled), compiled
+
+
+def test_a_new_process_loads_the_fits_traced_program(tmp_path):
+    """With the persistent cache on, an experiment's evaluation program (the run and its
+    tangents) is stored traced (`jax.export`): a new process (here: this one, its memory
+    of loaded programs cleared) loads it, for `sensitivities` and for the blocks of a
+    joint fit (prepared one at a time ahead of their first calls), and gives the same
+    numbers. Checked through the cache's counts, not by time."""
+    import jax
+
+    from jaxvisco import _export
+
+    def test(name, t1):
+        spec = jv.scenes.specimen("relaxation", elements=(2, 1, 1), t1=t1, dt0=0.1)
+        times = np.linspace(0.0, t1, 3)
+        return jv.Experiment(spec.scene, jv.eG(1), times, np.zeros((3, 1)), jv.ReactionForce(spec.grip, "x"),
+                             dt0=0.1, name=name)
+
+    values = {"eta_dev": 2.0}
+    prev = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    _export.clear()
+    try:
+        before = dict(_export.stats)
+        first = test("a", 0.2).sensitivities(values)
+        assert _export.stats["exported"] == before["exported"] + 1
+        _export.clear()
+        again = test("b", 0.2).sensitivities(values)
+        assert _export.stats["loaded"] == before["loaded"] + 1 and _export.stats["exported"] == before["exported"] + 1
+        np.testing.assert_array_equal(again[0], first[0])
+        np.testing.assert_array_equal(again[1]["eta_dev"], first[1]["eta_dev"])
+        tests = [jv.Experiment(e.scene, e.integrator, np.asarray(e.times), first[0] * f, e.observe, dt0=0.1,
+                               name=e.name) for e, f in ((test("c", 0.2), 1.0), (test("d", 0.2), 1.01))]
+        _export.clear()
+        loaded = _export.stats["loaded"]
+        fit = jv.identify(tests, {"eta_dev": 3.0}, max_iterations=2)
+        assert _export.stats["loaded"] == loaded + 1, _export.stats  # the blocks' one program, from disk
+        assert _export.stats["exported"] == before["exported"] + 1
+        assert fit.iterations >= 1
+    finally:
+        jax.config.update("jax_compilation_cache_dir", prev)
+        _export.clear()

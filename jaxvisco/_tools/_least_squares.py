@@ -378,12 +378,14 @@ _LOWERING = threading.Lock()
 
 def _first_block(block):
     """A block's first evaluation, its program compiled ahead (its jit call then finds
-    it) with tracing and lowering taken one block at a time: they hold Python's lock, so
-    blocks traced side by side would all finish late; one at a time, the first compiles
-    (which releases the lock) and runs while the next is traced (the module notes, 5.)."""
+    it) with tracing and lowering (or loading the traced program, with the persistent
+    cache on) taken one block at a time: they hold Python's lock, so blocks traced side by
+    side would all finish late; one at a time, the first compiles (which releases the
+    lock) and runs while the next is traced (the module notes, 5.)."""
     with _LOWERING:
-        lowered = _block_jit.lower(*block)
-    lowered.compile()
+        lowered = _block_jit.ahead(*block)
+    if lowered is not None:
+        lowered.compile()
     return _block_jit(*block)
 
 
@@ -520,4 +522,4 @@ def _statistics(problem: _Problem, s: _State, names, confidence) -> LeastSquares
 
 _statistics_jit = jit(_statistics)
 _advance_jit = jit(_advance)
-_block_jit = jit(_block)
+_block_jit = jit(_block, export=True)
