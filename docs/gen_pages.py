@@ -42,9 +42,10 @@ FAMILIES = [
      [r"scaling.*", r"switch_.*", r"cycles_.*"]),
     ("startup-and-compile", "Start-up and compilation",
      "The first call of a fresh process (tracing and compiling the time loop), the same with the compilation "
-     "cache filled, `jaxvisco paper --quick` cold and cached (`benchmarks/startup.py`), and what the compiled "
-     "program is made of (`benchmarks/compile_cost.py`).",
-     [r"startup.*", r"compile_cost"]),
+     "cache filled, `jaxvisco paper --quick` cold and cached (`benchmarks/startup.py`), what the compiled "
+     "program is made of (`benchmarks/compile_cost.py`), and a fit's whole processes, cold and cached "
+     "(`benchmarks/identify_startup.py`).",
+     [r"startup.*", r"compile_cost", r"identify_startup"]),
     ("cost-per-step", "Cost of a step",
      "A step in residual evaluations (`benchmarks/step_cost.py`), the share of the host sparse LU "
      "(`profile_step.py`), the chord iterations' rate (`chord_rate.py`), saving and the internal variable "
