@@ -191,7 +191,8 @@ def test_page_code_blocks_run(page, scratch):
         run_page(page, scratch)
         return
     env = default_optimization_env()
-    env["PYTHONPATH"] = os.pathsep.join([ROOT, os.path.dirname(__file__)] + [p for p in sys.path if p])
+    # this process's imports (the jaxvisco under test, installed or not), and the tests' helpers
+    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(__file__)] + [p for p in sys.path if p])
     env["MPLBACKEND"] = "Agg"
     p = subprocess.run([sys.executable, __file__, page], cwd=scratch, env=env, capture_output=True, text=True,
                        timeout=840)

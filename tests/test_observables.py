@@ -164,3 +164,45 @@ def test_reactions_in_results_files(tmp_path):
     back = jv.read_results(tmp_path / "run.h5")
     np.testing.assert_array_equal(back["reaction"], np.asarray(sol.reaction))
     np.testing.assert_array_equal(back["reaction_mean"], np.asarray(sol.reaction_mean))
+
+
+@pytest.mark.timeout(900)
+def test_frames_without_diagnostics_are_the_same_run():
+    """`SaveAt(diagnostics=False)`: the same steps and frames (positions, momenta,
+    cumulative dissipation and work, reactions) to rounding, the energies and momenta None,
+    with fixed steps and data times, every step, and error control; the reverse-mode
+    derivative of the grip force against fourth-order central differences; a results file
+    refuses such a run.
+    (`Experiment` runs this way; tests/test_identify.py checks its derivatives against
+    central differences.)"""
+    scene, bottom, _, _ = _gripped(t_grip=0.6)
+    ts = np.array([0.0, 0.25, 0.6, 0.83, 1.0])
+    cases = [dict(saveat=dict(ts=ts, reactions=True)), dict(saveat=dict(reactions=True)),
+             dict(saveat=dict(ts=ts, reactions=True), stepsize_controller=jv.PIDController(rtol=1e-3, atol=1e-3))]
+    for case in cases:
+        kw = {k: v for k, v in case.items() if k != "saveat"}
+        full = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.1, root_finder=SOLVER, saveat=jv.SaveAt(**case["saveat"]), **kw)
+        lean = jv.simulate(scene, jv.eG(1), t1=1.0, dt0=0.1, root_finder=SOLVER,
+                           saveat=jv.SaveAt(**case["saveat"], diagnostics=False), **kw)
+        assert lean.energy is None and lean.kinetic is None and lean.angular_momentum is None
+        assert full.energy is not None and lean.t.shape == full.t.shape
+        for k in ("t", "x", "p", "dissipated", "external_work", "reaction", "step_h"):
+            a, b = np.asarray(getattr(full, k)), np.asarray(getattr(lean, k))
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * max(1.0, np.max(np.abs(a))), err_msg=k)
+
+    def force(z):
+        sc = eqx.tree_at(lambda s: s.material.eta_dev, scene, jnp.exp(z[0]))
+        sol = jv.simulate(sc, jv.eG(1), t1=1.0, dt0=0.1, root_finder=SOLVER,
+                          saveat=jv.SaveAt(ts, reactions=True, diagnostics=False))
+        return jnp.sum(sol.reaction_force(bottom, component=0) ** 2)
+
+    z = jnp.log(jnp.array([scene.material.eta_dev]))
+    g = np.asarray(jax.grad(force)(z))
+    fd = _fd(lambda z: np.asarray(force(jnp.asarray(z)))[None], np.asarray(z), 1e-3)[0]
+    assert np.abs(fd).max() > 0
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+    with pytest.raises(ValueError, match="diagnostics must be True or False"):
+        jv.SaveAt(diagnostics="no")
+    with pytest.raises(ValueError, match="holds no diagnostics"):
+        jv.save(lean, scene, "unused.h5")
+    assert "diagnostics=False" in repr(jv.SaveAt(diagnostics=False))

@@ -35,7 +35,7 @@ from ._differentiable import (
 )
 from ._frames import (
     at_equilibrium,
-    diagnostics,
+    frame_diagnostics,
     first_reactions,
     initial_frames,
     step_reactions,
@@ -50,17 +50,18 @@ from ._solution import DONE, EQUILIBRIUM, FAILED, MAX_STEPS, RUNNING, Solution
 
 @jit(export=True)
 def run_adaptive(scene, scheme, solver, ctrl, state0, t0, t1, h0, capacity, save_every, save_gamma, ts_out,
-                 eq_tol, v0, use_v0, derivative, multigrid=None, save_reactions=False):
+                 eq_tol, v0, use_v0, derivative, multigrid=None, save_reactions=False, save_diagnostics=True):
     """Integrate from `t0` to `t1` with error-controlled steps; at most `capacity`
     accepted steps. Frames: every `save_every`-th accepted step (and the last), or, if
     `ts_out` is an array, at those times (dense output); `save_reactions`: with the
-    supports' forces. Returns the `Solution` and the
+    supports' forces; `save_diagnostics`: with their energies and momenta. Returns the `Solution` and the
     next step size the controller proposes. `derivative`: how a derivative's loop
     records itself (`_differentiable.Plan`); `multigrid`: the hierarchy's index arrays
     (`multigrid_arguments`), arguments rather than constants of the program."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, ctrl=ctrl, t0=t0, t1=t1, h0=h0, capacity=capacity,
                  save_every=save_every, save_gamma=save_gamma, ts_out=ts_out, eq_tol=eq_tol, use_v0=use_v0,
-                 derivative=derivative, multigrid=multigrid, save_reactions=save_reactions)
+                 derivative=derivative, multigrid=multigrid, save_reactions=save_reactions,
+                 save_diagnostics=save_diagnostics)
 
 
 @eqx.filter_custom_jvp
@@ -79,12 +80,13 @@ def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
     sol, h, rec = _probe(*primals, plan=derivative, **kw)
     sol, t_sol = differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"],
                                use_v0=kw["use_v0"], save_gamma=kw["save_gamma"],
-                               save_reactions=kw["save_reactions"], t0=kw["t0"], throw=derivative.throw)
+                               save_reactions=kw["save_reactions"], save_diagnostics=kw["save_diagnostics"],
+                               t0=kw["t0"], throw=derivative.throw)
     return (sol, h), (t_sol, jnp.zeros_like(h))
 
 
 def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, save_every, save_gamma, ts_out, eq_tol,
-           use_v0, save_reactions, plan=None):
+           use_v0, save_reactions, save_diagnostics=True, plan=None):
     """The loop itself: the `Solution`, the next step size and the `Record` of its
     accepted steps (with a `Plan`: what a derivative needs of them)."""
     order = ctrl.order(scheme.k)
@@ -99,7 +101,7 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
     total_mass = scene.mass() if with_energy else None
     dense = ts_out is not None
     n_frames = ts_out.shape[0] if dense else 1 + -(-capacity // save_every)
-    frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
+    frames, n_start = initial_frames(n_frames, t0, state0, diag0 if save_diagnostics else {}, save_gamma,
                                      first_reactions(scene, state0, t0) if save_reactions else None, ts_out)
     end_eps = 1e-12 * jnp.maximum(jnp.abs(t1), jnp.abs(t0)) + 1e-300
     max_attempts = 16 * capacity
@@ -158,10 +160,12 @@ def _probe(scene, state0, v0, *, scheme, solver, ctrl, t0, t1, h0, capacity, sav
             if dense:
                 frames, rec, n_saved = write_dense_frames(
                     scheme, scene, c["frames"], rec, c["n_saved"], ts_out, ctx, r.U, t_next, c["dissipated"], D,
-                    c["work"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), save_reactions)
+                    c["work"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), save_reactions,
+                    save_diagnostics)
             else:
                 frames = jax.lax.cond(
-                    save, lambda f: write_frame(f, c["n_saved"], t_next, new, diagnostics(scene, new), dissipated, work,
+                    save, lambda f: write_frame(f, c["n_saved"], t_next, new,
+                                                frame_diagnostics(scene, new, save_diagnostics), dissipated, work,
                                                 reaction),
                     lambda f: f, c["frames"])
                 n_saved = c["n_saved"] + save.astype(int)

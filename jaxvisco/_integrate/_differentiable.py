@@ -60,7 +60,7 @@ from .._time_element._step import (
     step_dissipation,
     step_outcome,
 )
-from ._frames import diagnostics, first_reactions, frame_values, step_reactions
+from ._frames import first_reactions, frame_diagnostics, frame_values, step_reactions
 
 # Relative residual of the sweeps' linear solves (2-norm of the scaled system) and their
 # Krylov vectors at most (restarted every `KRYLOV_RESTART`).
@@ -231,7 +231,8 @@ def _first_frame(sw, scene, state):
     """The frame of the initial state (every frame before the first sub-step)."""
     zero = jnp.zeros((), state.p.dtype)
     reaction = first_reactions(scene, state, sw.t0) if sw.save_reactions else None
-    return frame_values(state, diagnostics(scene, state), zero, zero, sw.save_gamma, reaction)
+    return frame_values(state, frame_diagnostics(scene, state, sw.save_diagnostics), zero, zero, sw.save_gamma,
+                        reaction)
 
 
 def _frame(sw, scene, state, t, h, U, D, W, D0, W0, s):
@@ -245,7 +246,8 @@ def _frame(sw, scene, state, t, h, U, D, W, D0, W0, s):
     else:
         st = polynomial_state(sw.scheme, step_polynomial(sw.scheme, scene, ctx, U), s)
     reaction = step_reactions(sw.scheme, scene, ctx, U, s) if sw.save_reactions else None
-    return frame_values(st, diagnostics(scene, st), D0 + s * D, W0 + s * W, sw.save_gamma, reaction)
+    return frame_values(st, frame_diagnostics(scene, st, sw.save_diagnostics), D0 + s * D, W0 + s * W,
+                        sw.save_gamma, reaction)
 
 
 def _end_velocity(scheme, scene, state, t, h, U):
@@ -303,6 +305,7 @@ class _Sweep:
     solver: object
     save_gamma: bool
     save_reactions: bool
+    save_diagnostics: bool
     t0: jax.Array
     throw: bool
 
@@ -584,7 +587,8 @@ def _adjoint_sweep(sw, ct):
     return check_sweep(rec, out, c["worst"], c["failed"], sw.throw)
 
 
-def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_gamma, save_reactions, t0, throw):
+def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_gamma, save_reactions,
+                  save_diagnostics, t0, throw):
     """The tangent of a loop's `Solution` `sol` (the rule of a `custom_jvp` around a time
     loop that wrote `rec` with a `Plan`): the frames' and the end velocity's, as the
     linear map `_sweep` of `tangents` (of the scene, the initial state and the
@@ -603,8 +607,8 @@ def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_g
                          "external_work", "linear_momentum", "angular_momentum", "reaction", "reaction_mean")
              if getattr(sol, k) is not None]
     spec_out = _shapes(({k: getattr(sol, k) for k in names}, sol.end_velocity))
-    cfg = _SweepConfig(scheme, solver, save_gamma, save_reactions, throw, tuple(split.where), _shapes(a), spec_out,
-                       False)
+    cfg = _SweepConfig(scheme, solver, save_gamma, save_reactions, save_diagnostics, throw, tuple(split.where),
+                       _shapes(a), spec_out, False)
     dyn = dict(rec=rec, scene=scene, state0=state0, v0=v0, use_v0=use_v0, n_saved=sol.n_saved, t0=t0)
     d_frames, d_v = eqxi.filter_primitive_bind(_sweep_p, dyn, a, cfg)
     t_sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names] + [s.end_velocity], t_sol,
@@ -632,6 +636,7 @@ class _SweepConfig:
     solver: object
     save_gamma: bool
     save_reactions: bool
+    save_diagnostics: bool
     throw: bool
     where: tuple
     spec_a: object
@@ -644,8 +649,8 @@ class _SweepConfig:
     def sweep(self, dyn):
         """What both sweeps read, from the primitive's array inputs `dyn`."""
         return _Sweep(dyn["rec"], _Split(dyn["scene"], where=self.where), dyn["state0"], dyn["v0"], dyn["use_v0"],
-                      dyn["n_saved"], self.scheme, self.solver, self.save_gamma, self.save_reactions, dyn["t0"],
-                      self.throw)
+                      dyn["n_saved"], self.scheme, self.solver, self.save_gamma, self.save_reactions,
+                      self.save_diagnostics, dyn["t0"], self.throw)
 
 
 def _shapes(tree):

@@ -14,6 +14,12 @@ from .._scene import Scene
 diagnostics = eqx.filter_jit(Scene.diagnostics)
 
 
+def frame_diagnostics(scene, state, on=True):
+    """What a frame holds of the state's diagnostics: all of them (`diagnostics`), or
+    none (`SaveAt(diagnostics=False)`)."""
+    return diagnostics(scene, state) if on else {}
+
+
 def relative_kinetic_energy(scene: Scene, x, p):
     """Kinetic energy relative to the best-fitting rigid motion (mass-weighted); for a
     body with held components, which cannot move rigidly, the whole kinetic energy."""
@@ -129,18 +135,18 @@ def write_frame(frames, idx, t, state, diag, dissipated, work, reaction=None):
 def frame_fields(frames):
     """The `Solution` fields of the frame buffers."""
     f = frames
-    return dict(t=f["t"], x=f["x"], p=f["p"], gamma=f["gamma"], energy=f["energy"], kinetic=f["kinetic"],
-                free_energy=f["free_energy"], dissipated=f["dissipated"], dissipation_rate=f["dissipation_rate"],
-                external_work=f["external_work"], linear_momentum=f["linear_momentum"],
-                angular_momentum=f["angular_momentum"], reaction=f["reaction"], reaction_mean=f["reaction_mean"])
+    keys = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated", "dissipation_rate",
+            "external_work", "linear_momentum", "angular_momentum", "reaction", "reaction_mean")
+    return {k: f.get(k) for k in keys}  # diagnostics: absent without them (None)
 
 
 def write_dense_frames(scheme, scene, frames, rec, ptr, ts_out, ctx, U, t_next, D_before, D, W_before, W, note,
-                       reactions=False):
+                       reactions=False, with_diagnostics=True):
     """`frames` with the frames at the requested times `ts_out[ptr:]` up to `t_next` (the
     end of an accepted step from `ctx` with unknowns `U`) written from the step's time
     polynomial (dense output), each noted for the derivative by `note(rec, frame, s)` (s:
-    where in the step it lies), with the supports' forces there if `reactions`. `D_before`, `W_before`: the cumulative dissipation and
+    where in the step it lies), with the supports' forces there if `reactions` and the
+    state's diagnostics if `with_diagnostics`. `D_before`, `W_before`: the cumulative dissipation and
     work at the step's start; `D`, `W`: the step's own (linear in time within the step).
     Returns (frames, rec, the next frame index)."""
     from .._time_element._estimate import dense_state
@@ -154,7 +160,8 @@ def write_dense_frames(scheme, scene, frames, rec, ptr, ts_out, ctx, U, t_next, 
         f, rec, j = c
         s = jnp.clip((ts_out[j] - ctx.t0) / ctx.h, 0.0, 1.0)
         st = dense_state(scheme, scene, ctx, U, s)
-        f = write_frame(f, j, ts_out[j], st, diagnostics(scene, st), D_before + s * D, W_before + s * W,
+        f = write_frame(f, j, ts_out[j], st, frame_diagnostics(scene, st, with_diagnostics), D_before + s * D,
+                        W_before + s * W,
                         step_reactions(scheme, scene, ctx, U, s) if reactions else None)
         return f, note(rec, j, s), j + 1
 

@@ -28,6 +28,12 @@ class SaveAt(eqx.Module):
     - `reactions`: also keep the force the supports exert on every held component
       (`Solution.reaction`, `Solution.reaction_force`; default False); needs a scene with
       held components.
+    - `diagnostics`: keep the energies and momenta of each frame (`energy`, `kinetic`,
+      `free_energy`, `dissipation_rate`, `linear_momentum`, `angular_momentum`; default
+      True). False leaves them None: a frame is then its state, the cumulative
+      `dissipated` and `external_work` (and reactions), and neither the run nor its
+      derivative evaluates the energy at the frames (a fit that reads positions or
+      forces only; `Experiment` runs so).
 
     **Raises:**
 
@@ -48,11 +54,12 @@ class SaveAt(eqx.Module):
     every: int = eqx.field(static=True, default=1)
     gamma: bool = eqx.field(static=True, default=False)
     reactions: bool = eqx.field(static=True, default=False)
+    diagnostics: bool = eqx.field(static=True, default=True)
 
-    def __init__(self, ts=None, *, every=1, gamma=False, reactions=False):
+    def __init__(self, ts=None, *, every=1, gamma=False, reactions=False, diagnostics=True):
         if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
             raise ValueError(f"SaveAt: every must be an integer >= 1, got {every!r}.")
-        for name, flag in (("gamma", gamma), ("reactions", reactions)):
+        for name, flag in (("gamma", gamma), ("reactions", reactions), ("diagnostics", diagnostics)):
             if not isinstance(flag, (bool, np.bool_)):
                 raise ValueError(f"SaveAt: {name} must be True or False, got {flag!r}.")
         if ts is not None and every != 1:
@@ -61,6 +68,7 @@ class SaveAt(eqx.Module):
         self.every = int(every)
         self.gamma = bool(gamma)
         self.reactions = bool(reactions)
+        self.diagnostics = bool(diagnostics)
 
     def check(self, t0, t1):
         if self.ts is not None and (self.ts[0] < t0 or self.ts[-1] > t1):
@@ -68,7 +76,8 @@ class SaveAt(eqx.Module):
                              f"[{self.ts[0]:g}, {self.ts[-1]:g}].")
 
     def __repr__(self):
-        gamma = (", gamma=True" if self.gamma else "") + (", reactions=True" if self.reactions else "")
+        gamma = ((", gamma=True" if self.gamma else "") + (", reactions=True" if self.reactions else "")
+                 + ("" if self.diagnostics else ", diagnostics=False"))
         if self.ts is None:
             return f"SaveAt(every={self.every}{gamma})"
         return f"SaveAt({self.ts.size} times from {self.ts[0]:g} to {self.ts[-1]:g}{gamma})"

@@ -42,7 +42,7 @@ from ._differentiable import (
 from ._event import AbstractEvent
 from ._frames import (
     at_equilibrium,
-    diagnostics,
+    frame_diagnostics,
     first_reactions,
     frame_fields,
     initial_frames,
@@ -171,7 +171,8 @@ def simulate(scene: Scene, integrator: AbstractTimeElement, t0: Optional[float] 
     sol = _run(scene, integrator, solver, state0, device_array(float(t0)), device_array(hs), device_array(te),
                device_array(n_active), saveat.every, saveat.gamma, eq_tol, ctrl.max_halvings, v0, use_v0, derivative,
                multigrid_arguments(integrator, scene, solver), save_reactions=saveat.reactions,
-               ts_out=None if saveat.ts is None else device_array(saveat.ts, float))
+               ts_out=None if saveat.ts is None else device_array(saveat.ts, float),
+               save_diagnostics=saveat.diagnostics)
     return _finish(sol, integrator, ctrl.max_halvings, throw)
 
 
@@ -252,7 +253,7 @@ def _adaptive(scene, integrator, ctrl, t0, t1, dt0, saveat, event, adjoint, solv
                           None if saveat.ts is None else device_array(saveat.ts, float),
                           None if event is None else device_array(float(event.tol)), v0, use_v0,
                           plan(adjoint, cap, saveat.every, integrator, scene), multigrid_arguments(integrator, scene, solver),
-                          save_reactions=saveat.reactions)
+                          save_reactions=saveat.reactions, save_diagnostics=saveat.diagnostics)
     if isinstance(sol.n_saved, jax.core.Tracer):
         return sol
     sol = sol.trimmed()
@@ -301,16 +302,17 @@ def _finish(sol, integrator, max_halvings, throw):
 
 @jit(export=True)
 def _run(scene, scheme, solver, state0, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings, v0, use_v0,
-         derivative, multigrid=None, save_reactions=False, ts_out=None):
+         derivative, multigrid=None, save_reactions=False, ts_out=None, save_diagnostics=True):
     """The time loop (`_loop`), compiled. `derivative`: how a derivative's loop records
     itself (`_differentiable.Plan`); `multigrid`: the hierarchy's index arrays
     (`multigrid_arguments`), arguments rather than constants of the program;
     `save_reactions`: frames with the supports' forces; `ts_out`: frames at these times
-    (dense output) instead of every `save_every`-th step."""
+    (dense output) instead of every `save_every`-th step; `save_diagnostics`: frames with
+    their energies and momenta."""
     return _loop(scene, state0, v0, scheme=scheme, solver=solver, t0=t0, hs=hs, te=te, n_steps=n_steps,
                  save_every=save_every, save_gamma=save_gamma, eq_tol=eq_tol, max_halvings=max_halvings,
                  use_v0=use_v0, derivative=derivative, multigrid=multigrid, save_reactions=save_reactions,
-                 ts_out=ts_out)
+                 ts_out=ts_out, save_diagnostics=save_diagnostics)
 
 
 @eqx.filter_custom_jvp
@@ -330,11 +332,12 @@ def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
     del multigrid
     sol, rec = _probe(*primals, plan=derivative, **kw)
     return differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"], use_v0=kw["use_v0"],
-                         save_gamma=kw["save_gamma"], save_reactions=kw["save_reactions"], t0=kw["t0"], throw=derivative.throw)
+                         save_gamma=kw["save_gamma"], save_reactions=kw["save_reactions"],
+                         save_diagnostics=kw["save_diagnostics"], t0=kw["t0"], throw=derivative.throw)
 
 
 def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every, save_gamma, eq_tol, max_halvings,
-           use_v0, save_reactions, ts_out, plan=None):
+           use_v0, save_reactions, ts_out, save_diagnostics=True, plan=None):
     """The loop itself: a `Solution` and the `Record` of its accepted sub-steps (with a
     `Plan`: what a derivative needs of them)."""
     dense = ts_out is not None
@@ -371,7 +374,8 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
             if dense:
                 frames, rec, n_saved = jax.lax.cond(ok, lambda: write_dense_frames(
                     scheme, scene, frames, rec, n_saved, ts_out, ctx, r.U, t_new, dissipated + c["D"], D,
-                    work + c["W"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), save_reactions),
+                    work + c["W"], W, lambda rec, j, s: record_dense_frame(rec, j, rec.n - 1, s), save_reactions,
+                    save_diagnostics),
                     lambda: (frames, rec, n_saved))
             return dict(
                 state=pick(new, c["state"]), t=t_new, frames=frames, n_saved=n_saved,
@@ -408,8 +412,8 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
             save, frames, n_saved = jnp.asarray(False), a["frames"], a["n_saved"]
         else:
             save = (((i + 1) % save_every == 0) | (status != RUNNING)) & ~failed
-            frames = jax.lax.cond(save, lambda f: write_frame(f, c["n_saved"], a["t"], a["state"], diagnostics(
-                scene, a["state"]), dissipated, work, a["reaction"]), lambda f: f, a["frames"])
+            frames = jax.lax.cond(save, lambda f: write_frame(f, c["n_saved"], a["t"], a["state"], frame_diagnostics(
+                scene, a["state"], save_diagnostics), dissipated, work, a["reaction"]), lambda f: f, a["frames"])
             n_saved = c["n_saved"] + save.astype(int)
         steps = write_step(c["steps"], i, step_t=a["t"], step_h=hs[i], newton_iterations=a["its"],
                            krylov_iterations=a["kits"], chord_iterations=a["chord"], residual=a["res"],
@@ -419,7 +423,7 @@ def _probe(scene, state0, v0, *, scheme, solver, t0, hs, te, n_steps, save_every
                     n_saved=n_saved, dissipated=dissipated, work=work, status=status,
                     n_done=c["n_done"] + (~failed).astype(int))
 
-    frames, n_start = initial_frames(n_frames, t0, state0, diag0, save_gamma,
+    frames, n_start = initial_frames(n_frames, t0, state0, diag0 if save_diagnostics else {}, save_gamma,
                                      first_reactions(scene, state0, t0) if save_reactions else None, ts_out)
     steps = step_buffers(hs.shape[0])
     v_init = jnp.where(use_v0, v0, v_state0)

@@ -44,7 +44,8 @@ class Solution(eqx.Module):
       `gamma` (the internal variable, where `SaveAt(gamma=True)`), `energy` (the total
       energy H), `kinetic`, `free_energy`, `dissipated` (cumulative), `dissipation_rate`,
       `external_work` (cumulative work of the loads and moving supports),
-      `linear_momentum`, `angular_momentum`, and with `SaveAt(reactions=True)` the force
+      `linear_momentum`, `angular_momentum` (the diagnostics, None where
+      `SaveAt(diagnostics=False)`), and with `SaveAt(reactions=True)` the force
       the supports exert on each held component (zero on the free ones): `reaction` at
       the frame's time (what a load cell reads: the rate of the momenta from the step's
       time polynomial plus the internal minus the external force), and `reaction_mean`,
@@ -68,14 +69,14 @@ class Solution(eqx.Module):
     x: jax.Array
     p: jax.Array
     gamma: Optional[jax.Array]
-    energy: jax.Array
-    kinetic: jax.Array
-    free_energy: jax.Array
+    energy: Optional[jax.Array]  # the diagnostics: None with SaveAt(diagnostics=False)
+    kinetic: Optional[jax.Array]
+    free_energy: Optional[jax.Array]
     dissipated: jax.Array
-    dissipation_rate: jax.Array
+    dissipation_rate: Optional[jax.Array]
     external_work: jax.Array
-    linear_momentum: jax.Array
-    angular_momentum: jax.Array
+    linear_momentum: Optional[jax.Array]
+    angular_momentum: Optional[jax.Array]
     step_t: jax.Array
     step_h: jax.Array
     newton_iterations: jax.Array

@@ -361,7 +361,9 @@ def save(solution: "Solution", scene: "Scene", path: str | os.PathLike, *, gamma
 
     **Raises:**
 
-    `FileExistsError` for an existing file without `overwrite`.
+    `FileExistsError` for an existing file without `overwrite`; `ValueError` for a
+    `Solution` without its diagnostics (`SaveAt(diagnostics=False)`: a results file holds
+    them).
 
     **Example:**
 
@@ -376,6 +378,9 @@ def save(solution: "Solution", scene: "Scene", path: str | os.PathLike, *, gamma
     r = jv.read_results("run.h5")
     ```
     """
+    if getattr(solution, "energy", 0) is None:
+        raise ValueError("save: this Solution holds no diagnostics (it was run with SaveAt(diagnostics=False)); "
+                         "a results file keeps the energies and momenta of every frame: run with diagnostics=True.")
     if gamma is None:
         gamma = getattr(solution, "gamma", None) is not None
     attrs = dict(attrs or {})

@@ -185,10 +185,12 @@ class Experiment(eqx.Module):
 
     def run(self, scene: Optional[Scene] = None):
         """The test's run (of `scene`, default its own) as a `Solution`, with frames at the
-        sample times; a run that fails returns with `status == "failed"`."""
+        sample times (the supports' forces, the energies and momenta only where an
+        observable reads them); a run that fails returns with `status == "failed"`."""
         reactions = any(o.needs_reactions for o in self.observe)
+        diagnostics = any(o.needs_diagnostics for o in self.observe)
         return simulate(self.scene if scene is None else scene, self.integrator, self.t0, self.t1, self.dt0,
-                        saveat=SaveAt(np.asarray(self.times), reactions=reactions),
+                        saveat=SaveAt(np.asarray(self.times), reactions=reactions, diagnostics=diagnostics),
                         stepsize_controller=self.stepsize_controller, root_finder=self.root_finder, throw=False)
 
     def model(self, solution) -> jnp.ndarray:

@@ -32,10 +32,12 @@ class AbstractObservable(eqx.Module):
     An observable is called with a `Solution` whose frames are the data's sample times
     and returns an array `(frames, columns)`; `columns` says how many columns of data
     it explains and `labels` names them. A subclass sets `needs_reactions = True` when
-    it reads `Solution.reaction`.
+    it reads `Solution.reaction`, and `needs_diagnostics = False` when it reads none of
+    the frames' energies and momenta (the run then skips them: `SaveAt(diagnostics=False)`).
     """
 
     needs_reactions = False  # whether the run must save the supports' forces
+    needs_diagnostics = True  # whether it reads the frames' energies or momenta
 
     @abc.abstractmethod
     def __call__(self, solution) -> jnp.ndarray:
@@ -95,6 +97,7 @@ class ReactionForce(AbstractOneColumn):
     component: int = eqx.field(static=True)
     name: str = eqx.field(static=True, default="force")
     needs_reactions = True
+    needs_diagnostics = False
 
     def __init__(self, nodes, component, name="force"):
         idx = np.asarray(nodes)
@@ -139,6 +142,7 @@ class Displacement(AbstractObservable):
     probe: Probe
     component: object = eqx.field(static=True)
     name: str = eqx.field(static=True, default="u")
+    needs_diagnostics = False
 
     def __init__(self, mesh, points, component=None, name="u"):
         self.probe = Probe(mesh, points)
@@ -181,6 +185,7 @@ class Extensometer(AbstractOneColumn):
 
     probe: Probe
     name: str = eqx.field(static=True, default="elongation")
+    needs_diagnostics = False
 
     def __init__(self, mesh, a, b, name="elongation"):
         self.probe = Probe(mesh, np.stack([np.asarray(a, float), np.asarray(b, float)]))
@@ -213,6 +218,11 @@ class Quantity(AbstractOneColumn):
         if field not in self._FIELDS:
             raise ValueError(f"Quantity: field must be one of {self._FIELDS}, got {field!r}.")
         self.field = field
+
+    @property
+    def needs_diagnostics(self):
+        """Whether its field is one of the frames' diagnostics (not the cumulative ones)."""
+        return self.field not in ("dissipated", "external_work")
 
     def __call__(self, solution):
         return getattr(solution, self.field)[:, None]
