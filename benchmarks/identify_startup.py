@@ -75,12 +75,15 @@ def main(argv=None):
     ap.add_argument("--out", default="identify_startup")
     a = ap.parse_args(argv)
     roots = {"this": ROOT} if a.baseline is None else {"this": ROOT, "baseline": os.path.abspath(a.baseline)}
+    info = machine()  # the load before the runs
+    commits = {label: subprocess.run(["git", "-C", root, "rev-parse", "HEAD"], capture_output=True,
+                                     text=True).stdout.strip() for label, root in roots.items()}
     runs = {label: [] for label in roots}
     for i in range(a.repeats):
         for label, root in roots.items():
             runs[label].append(_cases(root))
             print(i, label, {k: round(v, 1) for k, v in runs[label][-1].items()}, flush=True)
-    data = dict(machine=machine(), repeats=a.repeats, roots=roots, cases={})
+    data = dict(machine=info, repeats=a.repeats, roots=roots, commits=commits, cases={})
     for label, rows in runs.items():
         data["cases"][label] = {k: dict(median_s=statistics.median(r[k] for r in rows), all_s=[r[k] for r in rows])
                                 for k in rows[0]}
