@@ -61,6 +61,7 @@ from .._time_element._step import (
     step_outcome,
 )
 from ._frames import first_reactions, frame_diagnostics, frame_values, step_reactions
+from ._solution import FRAME_FIELDS
 
 # Relative residual of the sweeps' linear solves (2-norm of the scaled system) and their
 # Krylov vectors at most (restarted every `KRYLOV_RESTART`).
@@ -603,9 +604,7 @@ def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_g
     a = (split.tangent, t_state0, t_v0)
     if not jax.tree_util.tree_leaves(a):
         return sol, t_sol
-    names = [k for k in ("x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated", "dissipation_rate",
-                         "external_work", "linear_momentum", "angular_momentum", "reaction", "reaction_mean")
-             if getattr(sol, k) is not None]
+    names = [k for k in FRAME_FIELDS if k != "t" and getattr(sol, k) is not None]  # times: constants
     spec_out = _shapes(({k: getattr(sol, k) for k in names}, sol.end_velocity))
     cfg = _SweepConfig(scheme, solver, save_gamma, save_reactions, save_diagnostics, throw, tuple(split.where),
                        _shapes(a), spec_out, False)

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 from .._fem._tensor import small_solve
 from .._fem._update import put
 from .._scene import Scene
+from ._solution import FRAME_FIELDS
 
 
 # The diagnostics of a frame as a program of its own: the loops write frames with it and
@@ -134,10 +135,7 @@ def write_frame(frames, idx, t, state, diag, dissipated, work, reaction=None):
 
 def frame_fields(frames):
     """The `Solution` fields of the frame buffers."""
-    f = frames
-    keys = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated", "dissipation_rate",
-            "external_work", "linear_momentum", "angular_momentum", "reaction", "reaction_mean")
-    return {k: f.get(k) for k in keys}  # diagnostics: absent without them (None)
+    return {k: frames.get(k) for k in FRAME_FIELDS}  # diagnostics: absent without them (None)
 
 
 def write_dense_frames(scheme, scene, frames, rec, ptr, ts_out, ctx, U, t_next, D_before, D, W_before, W, note,

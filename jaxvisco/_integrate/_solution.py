@@ -13,6 +13,10 @@ from .._scene import State
 
 RUNNING, FAILED, EQUILIBRIUM, DONE, MAX_STEPS = 0, 1, 2, 3, 4
 STATUS = {RUNNING: "running", FAILED: "failed", EQUILIBRIUM: "equilibrium", DONE: "done", MAX_STEPS: "max_steps"}
+# The per-frame fields of a `Solution` (leading axis: the saved frame); the diagnostics,
+# `gamma` and the reactions among them are None where the run does not save them.
+FRAME_FIELDS = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated", "dissipation_rate",
+              "external_work", "linear_momentum", "angular_momentum", "reaction", "reaction_mean")
 STEP_KEYS = ("step_t", "step_h", "newton_iterations", "krylov_iterations", "chord_iterations", "residual",
              "rejections")
 
@@ -132,11 +136,8 @@ class Solution(eqx.Module):
         """Drop the unused tail of the preallocated buffers (host side; `simulate` does this
         outside `jax.jit`)."""
         ns, nt = int(self.n_saved), int(self.n_steps)
-        frames = ("t", "x", "p", "gamma", "energy", "kinetic", "free_energy", "dissipated",
-                  "dissipation_rate", "external_work", "linear_momentum", "angular_momentum", "reaction",
-                  "reaction_mean")
         out = self
-        for name in frames:
+        for name in FRAME_FIELDS:
             if getattr(self, name) is not None:
                 out = eqx.tree_at(lambda s: getattr(s, name), out, _index(getattr(self, name), slice(ns)))
         for name in STEP_KEYS:

@@ -61,6 +61,10 @@ class Bounds(eqx.Module):
         ]
         return jnp.select([kinds == k for k in range(len(branches))], branches)
 
+    def slope(self, z):
+        """`dx/dz` `(p,)` at `z`: each physical value depends on its own unconstrained one."""
+        return jax.jvp(self.to_physical, (z,), (jnp.ones_like(z),))[1]
+
     def to_unconstrained(self, x):
         """Unconstrained values `z` `(p,)` of physical values `x` strictly inside the
         bounds (the inverse of `to_physical`)."""

@@ -399,8 +399,7 @@ def evaluate(residual, args, values, lower=None, upper=None):
     z = bounds.to_unconstrained(jnp.asarray(values))
     m = eqx.filter_eval_shape(residual, jnp.zeros(values.size), args).shape[0]
     J, r = _block_jit(residual, args, jnp.ones(m), bounds, z)
-    dxdz = jax.jvp(bounds.to_physical, (z,), (jnp.ones_like(z),))[1]
-    return r, J / dxdz
+    return r, J / bounds.slope(z)
 
 
 def _block(residual, args, sigma, bounds, z):
@@ -489,7 +488,7 @@ def _statistics(problem: _Problem, s: _State, names, confidence) -> LeastSquares
     bounds = problem.bounds
     z, r, J = s.z, s.r, s.J
     x = bounds.to_physical(z)
-    dxdz = jax.jvp(bounds.to_physical, (z,), (jnp.ones_like(z),))[1]
+    dxdz = bounds.slope(z)
     D = _column_norms(J)
     S, Vt, _ = _scaled_svd(J / D, r)
     floor = rcond * S[0] + jnp.finfo(S.dtype).tiny
