@@ -12,8 +12,9 @@ Every measurement runs in a fresh subprocess (its peak resident memory is its ow
 - ``timing``: first calls of the jitted forward loss, `jax.grad` and `jax.jacfwd` (p = 2,
   then p = 4) in that order in one process, then medians of timed calls of each;
 - ``first_grad``: the first `jax.grad` call alone in a fresh process, no cache;
-- ``cached``: a process with the persistent cache on fills it with one gradient; a second
-  process's first gradient call is then timed (its own cache directory per case);
+- ``cached``: a process with the persistent cache on fills it with one gradient (timed: the
+  first process), a second process's first gradient call is then timed (its own cache
+  directory per case);
 - ``memory``: peak RSS of a process that computes one gradient (and of one that computes
   only the forward loss).
 
@@ -126,7 +127,7 @@ def measure(case, reps, what):
         res["first_grad"] = run(case, "first_grad", env=env)
     if "cached" in what:
         with tempfile.TemporaryDirectory() as d:
-            run(case, "cached", d, env=env)  # fills the cache
+            res["cached_first_process"] = run(case, "cached", d, env=env)  # fills the cache
             res["cached_second_process"] = run(case, "cached", d, env=env)
     if "memory" in what:
         res["memory_forward"] = run(case, "memory_forward", env=env)

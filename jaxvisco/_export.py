@@ -413,7 +413,9 @@ def _export(fn, name, leaves, in_def, static, options):
     prev = getattr(_recorder, "patterns", None)
     _recorder.patterns = []
     try:
-        exp = jax.export.export(jax.jit(flat), disabled_checks=checks)(*leaves)
+        specs = [jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=getattr(x, "weak_type", False))
+                 if isinstance(x, jax.core.Tracer) else x for x in leaves]  # inside a trace (`nested`)
+        exp = jax.export.export(jax.jit(flat), disabled_checks=checks)(*specs)
         patterns = list(_recorder.patterns)
     finally:
         _recorder.patterns = prev
@@ -445,6 +447,48 @@ def call(fn, name, args, kwargs, options):
     out_leaves = runner(*jax.device_put(leaves, jax.devices()[0]))
     dyn_out = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(entry["out_skeleton"]), out_leaves)
     return eqx.combine(dyn_out, entry["out_static"])
+
+
+def _plain(x):
+    """`x` is an array, or a tracer of a program being traced (not of a derivative or a
+    batch, which an exported program's call cannot follow)."""
+    if not isinstance(x, jax.core.Tracer):
+        return True
+    try:
+        from jax._src.interpreters.partial_eval import DynamicJaxprTracer
+    except ImportError:  # a JAX that moved it: trace as usual
+        return False
+    return isinstance(x, DynamicJaxprTracer)
+
+
+def nested(fn, name, args, kwargs):
+    """`fn(*args, **kwargs)` inside a program being traced (e.g. the user's `jax.jit` of a
+    `jax.grad` of a run: the derivative's recording loop and its sweeps) as the call of an
+    exported program, loaded where one is stored (exporting and storing it otherwise): a
+    later process loads it instead of tracing and lowering `fn`, and the program around
+    it, which inlines it, is the one JAX's cache already holds. Raises `Uncacheable` where
+    `call` does, inside another export (that program holds this one), and where an
+    argument is differentiated or batched by a transformation inside the program; the
+    caller then traces `fn` as usual."""
+    if getattr(_recorder, "patterns", None) is not None:
+        raise Uncacheable("inside the export of another program")
+    if not all(_plain(x) for x in jax.tree_util.tree_leaves((args, kwargs))):
+        raise Uncacheable("an argument is transformed (differentiated or batched) inside the program")
+    entry, leaves = prepare(fn, name, args, kwargs, {})
+    out_leaves = entry["exported"].call(*leaves)
+    dyn_out = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(entry["out_skeleton"]), out_leaves)
+    return eqx.combine(dyn_out, entry["out_static"])
+
+
+def inline(fn, *args, **kwargs):
+    """`fn(*args, **kwargs)`, by `nested` where the persistent cache is on and the call can
+    be stored, else traced as usual."""
+    if directory() is not None:
+        try:
+            return nested(fn, f"{fn.__module__}.{fn.__qualname__}", args, kwargs)
+        except Uncacheable:
+            pass
+    return fn(*args, **kwargs)
 
 
 def prepare(fn, name, args, kwargs, options):

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._config import device_array, require_x64
+from ._export import register_type
 from ._fem._krylov import mass_solve
 from ._fem._passes import POINTS_PER_PASS, map_in_passes
 from ._fem._space import Discretization, StaticArray
@@ -17,6 +18,7 @@ from ._time_functions import _time_function
 from ._validation import _concrete, check_finite, check_positive
 
 
+@register_type  # a stored derivative program returns one (`_export.inline`)
 class State(eqx.Module):
     """The state of a body: nodal positions `x` `(n_nodes, dim)`, nodal momenta `p`
     `(n_nodes, dim)`, and the internal variable `gamma` `(n_cells, n_qp, 3, 3)` at every

@@ -144,15 +144,17 @@ def loss(z):
     s = jv.simulate(jv.with_parameters(scene, {"eta_dev": jnp.exp(z[0])}), jv.eG(1), t1=0.3, dt0=0.1)
     return s.dissipated[-1] + s.free_energy[-1]
 g = jax.grad(loss)(jnp.log(jnp.array([scene.material.eta_dev])))
-print("RESULT " + json.dumps(dict(g=float(g[0]), **events)))
+from jaxvisco import _export
+print("RESULT " + json.dumps(dict(g=float(g[0]), **events, **_export.stats)))
 """
 
 
 @pytest.mark.timeout(900)
 def test_a_second_process_takes_the_gradient_from_the_cache(tmp_path):
     """A process that computes a gradient with the cache on stores its programs; a second
-    process compiles none of them (every compile request is a cache hit) and gets the
-    same gradient."""
+    process compiles none of them (every compile request is a cache hit), traces neither
+    the derivative's recording loop nor its sweep (it loads both traced programs:
+    `_export.inline`) and gets the same gradient."""
     from helpers import subprocess_env
 
     env = subprocess_env()
@@ -169,6 +171,7 @@ def test_a_second_process_takes_the_gradient_from_the_cache(tmp_path):
     first, second = run(), run()
     assert first["hits"] < first["requests"]
     assert second["hits"] == second["requests"] > 0, second
+    assert first["exported"] >= 2 and second["exported"] == 0 and second["loaded"] >= 2, (first, second)
     assert second["g"] == first["g"]
 
 

@@ -15,6 +15,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .. import _export
 from .._config import jit
 from .._solver._newton import solve_step
 from .._solver._tangent import empty_tangent, multigrid_scope
@@ -77,7 +78,7 @@ def _loop(scene, state0, v0, **kw):
 @_loop.def_jvp
 def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
     del multigrid  # the derivative reads the hierarchy as constants (`_simulate._loop_jvp`)
-    sol, h, rec = _probe(*primals, plan=derivative, **kw)
+    sol, h, rec = _export.inline(_probe, *primals, plan=derivative, **kw)  # stored with the cache on
     sol, t_sol = differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"],
                                use_v0=kw["use_v0"], save_gamma=kw["save_gamma"],
                                save_reactions=kw["save_reactions"], save_diagnostics=kw["save_diagnostics"],

@@ -42,6 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _export
+from .._export import register_type
 from .._fem._krylov import gmres
 from .._fem._tensor import vec_to_sym
 from .._fem._update import put, put_or_drop
@@ -85,6 +87,7 @@ class Plan:
     throw: bool = False
 
 
+@register_type  # a stored derivative program returns one (`_export.inline`)
 class Record(eqx.Module):
     """What the loop writes for its derivative: start time `t` and size `h` of each of
     its `n` accepted sub-steps, and per saved frame the index of the sub-step whose end
@@ -658,7 +661,13 @@ def _shapes(tree):
 
 def _sweep_impl(dyn, lin, cfg):
     """The forward sweep of the input tangents `lin`, or (`cfg.transpose`) the adjoint
-    sweep of the frames' cotangents `lin`, shaped as the input tangents."""
+    sweep of the frames' cotangents `lin`, shaped as the input tangents; stored with the
+    persistent cache on (`_export.inline`: a later process loads the sweep's program
+    instead of tracing it)."""
+    return _export.inline(_sweep_run, dyn, lin, cfg)
+
+
+def _sweep_run(dyn, lin, cfg):
     sw = cfg.sweep(dyn)
     if not cfg.transpose:
         return _sweep(sw, lin)

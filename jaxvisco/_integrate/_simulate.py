@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _export
 from .._config import _top_level, device_array, jit
 from .._scene import Scene, State
 from .._solver._newton import NewtonKrylov, solve_step
@@ -330,7 +331,7 @@ def _loop_jvp(primals, tangents, *, derivative, multigrid, **kw):
     # of custom derivatives inside it lazily, possibly after this rule returned, where
     # arguments passed in by a context would be stale.
     del multigrid
-    sol, rec = _probe(*primals, plan=derivative, **kw)
+    sol, rec = _export.inline(_probe, *primals, plan=derivative, **kw)  # stored with the cache on
     return differentiate(sol, rec, primals, tangents, scheme=kw["scheme"], solver=kw["solver"], use_v0=kw["use_v0"],
                          save_gamma=kw["save_gamma"], save_reactions=kw["save_reactions"],
                          save_diagnostics=kw["save_diagnostics"], t0=kw["t0"], throw=derivative.throw)

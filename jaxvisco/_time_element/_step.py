@@ -16,11 +16,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import register_type
 from .._fem._quadrature import gauss_legendre
 from .._fem._tensor import small_solve, sym_to_vec, vec_to_sym
 from .._scene import Scene, State
 
 
+@register_type  # a stored derivative program returns one (`_export.inline`)
 class Unknowns(eqx.Module):
     x: jax.Array  # (k, n_nodes, dim): increments x_I - x_n (see `nodal_fields`)
     g: Optional[jax.Array]  # (k, n_cells, nq, 6) or None
