@@ -444,7 +444,11 @@ def call(fn, name, args, kwargs, options):
         runner = entry["runner"] = jax.jit(run, compiler_options=options or None)
     # Committed (outputs of an earlier run) and uncommitted (new) arrays would compile the
     # exported program twice (seen: the command line's chunks); commit every input.
-    out_leaves = runner(*jax.device_put(leaves, jax.devices()[0]))
+    return _rebuild(entry, runner(*jax.device_put(leaves, jax.devices()[0])))
+
+
+def _rebuild(entry, out_leaves):
+    """The output of `entry`'s function from the array outputs of its program."""
     dyn_out = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(entry["out_skeleton"]), out_leaves)
     return eqx.combine(dyn_out, entry["out_static"])
 
@@ -475,9 +479,7 @@ def nested(fn, name, args, kwargs):
     if not all(_plain(x) for x in jax.tree_util.tree_leaves((args, kwargs))):
         raise Uncacheable("an argument is transformed (differentiated or batched) inside the program")
     entry, leaves = prepare(fn, name, args, kwargs, {})
-    out_leaves = entry["exported"].call(*leaves)
-    dyn_out = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(entry["out_skeleton"]), out_leaves)
-    return eqx.combine(dyn_out, entry["out_static"])
+    return _rebuild(entry, entry["exported"].call(*leaves))
 
 
 def inline(fn, *args, **kwargs):
