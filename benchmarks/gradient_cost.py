@@ -15,6 +15,7 @@ Every measurement runs in a fresh subprocess (its peak resident memory is its ow
 - ``cached``: a process with the persistent cache on fills it with one gradient (timed: the
   first process), a second process's first gradient call is then timed (its own cache
   directory per case);
+- ``cached_jacfwd``: the same for the first `jax.jacfwd` call (p = 2);
 - ``memory``: peak RSS of a process that computes one gradient (and of one that computes
   only the forward loss).
 
@@ -40,7 +41,7 @@ import jax, jax.numpy as jnp, numpy as np, equinox as eqx
 jax.config.update("jax_enable_x64", True)
 import jaxvisco as jv
 case, mode = sys.argv[1], sys.argv[2]
-if mode == "cached":
+if mode in ("cached", "cached_jacfwd"):
     jv.enable_compilation_cache(sys.argv[3])
 CASES = {
     "t2": dict(n=20), "t10": dict(n=100), "t100": dict(n=1000), "t200_f20": dict(n=2000, every=100),
@@ -99,6 +100,9 @@ if mode == "timing":
 elif mode in ("first_grad", "cached", "memory_grad"):
     out["first_grad_s"], g = first(grad, z2)
     out["grad"] = np.asarray(g).tolist()
+elif mode == "cached_jacfwd":
+    out["first_jacfwd2_s"], j = first(jacfwd, z2)
+    out["jacfwd2"] = np.asarray(j).tolist()
 elif mode in ("first_forward", "memory_forward"):
     out["first_forward_s"], v = first(fwd, z2)
 out["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -129,6 +133,10 @@ def measure(case, reps, what):
         with tempfile.TemporaryDirectory() as d:
             res["cached_first_process"] = run(case, "cached", d, env=env)  # fills the cache
             res["cached_second_process"] = run(case, "cached", d, env=env)
+    if "cached_jacfwd" in what:
+        with tempfile.TemporaryDirectory() as d:
+            res["cached_jacfwd_first_process"] = run(case, "cached_jacfwd", d, env=env)
+            res["cached_jacfwd_second_process"] = run(case, "cached_jacfwd", d, env=env)
     if "memory" in what:
         res["memory_forward"] = run(case, "memory_forward", env=env)
         res["memory_grad"] = run(case, "memory_grad", env=env)
@@ -145,7 +153,7 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default=",".join(DEFAULT), help="comma-separated: " + ", ".join(DEFAULT))
-    ap.add_argument("--what", default=None, help="override: timing,first,cached,memory")
+    ap.add_argument("--what", default=None, help="override: timing,first,cached,cached_jacfwd,memory")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--out", default="gradient_cost.json")
     args = ap.parse_args(argv)

@@ -92,10 +92,14 @@ def test_the_adjoint_equals_the_replay_adjoint(name):
 
 @pytest.mark.timeout(900)
 def test_forward_mode_equals_the_replay_adjoint():
-    """`jax.jacfwd` (the forward sweep) gives the reference gradient too (a held 2D body)."""
+    """`jax.jacfwd` (the forward sweep, a batch of three tangents) gives the reference
+    gradient too (a held 2D body), and `jax.jacrev` of two outputs (the adjoint sweep, a
+    batch of two cotangents) its multiples."""
     ref = json.loads(REFERENCE.read_text())["held_2d_fixed"]
     z, loss = _case("held_2d_fixed")
     assert _rel(eqx.filter_jit(jax.jacfwd(loss))(z), ref) <= 1e-8
+    rows = eqx.filter_jit(jax.jacrev(lambda z: loss(z) * jnp.array([1.0, -2.0])))(z)
+    assert _rel(rows, np.outer([1.0, -2.0], ref)) <= 1e-8
 
 
 @pytest.mark.timeout(900)
@@ -141,20 +145,24 @@ import jaxvisco as jv
 jv.enable_compilation_cache(sys.argv[1])
 scene = jv.scenes.lshape(dim=2, refinement=1)
 def loss(z):
-    s = jv.simulate(jv.with_parameters(scene, {"eta_dev": jnp.exp(z[0])}), jv.eG(1), t1=0.3, dt0=0.1)
+    s = jv.simulate(jv.with_parameters(scene, {"eta_dev": jnp.exp(z[0]), "eta_vol": jnp.exp(z[1])}), jv.eG(1),
+                    t1=0.3, dt0=0.1)
     return s.dissipated[-1] + s.free_energy[-1]
-g = jax.grad(loss)(jnp.log(jnp.array([scene.material.eta_dev])))
+z = jnp.log(jnp.array([scene.material.eta_dev, scene.material.eta_vol]))
+g = jax.grad(loss)(z)
+j = eqx.filter_jit(jax.jacfwd(loss))(z)
 from jaxvisco import _export
-print("RESULT " + json.dumps(dict(g=float(g[0]), **events, **_export.stats)))
+print("RESULT " + json.dumps(dict(g=[float(v) for v in g], j=[float(v) for v in j], **events, **_export.stats)))
 """
 
 
 @pytest.mark.timeout(900)
 def test_a_second_process_takes_the_gradient_from_the_cache(tmp_path):
-    """A process that computes a gradient with the cache on stores its programs; a second
-    process compiles none of them (every compile request is a cache hit), traces neither
-    the derivative's recording loop nor its sweep (it loads both traced programs:
-    `_export.inline`) and gets the same gradient."""
+    """A process that computes a gradient (`jax.grad`, and `jax.jacfwd`: a batch of
+    tangents) with the cache on stores its programs; a second process compiles none of
+    them (every compile request is a cache hit), traces neither the derivatives'
+    recording loop nor their sweeps (it loads the three traced programs:
+    `_export.inline`) and gets the same derivatives."""
     from helpers import subprocess_env
 
     env = subprocess_env()
@@ -171,8 +179,8 @@ def test_a_second_process_takes_the_gradient_from_the_cache(tmp_path):
     first, second = run(), run()
     assert first["hits"] < first["requests"]
     assert second["hits"] == second["requests"] > 0, second
-    assert first["exported"] >= 2 and second["exported"] == 0 and second["loaded"] >= 2, (first, second)
-    assert second["g"] == first["g"]
+    assert first["exported"] >= 3 and second["exported"] == 0 and second["loaded"] >= 3, (first, second)
+    assert second["g"] == first["g"] and second["j"] == first["j"]
 
 
 if __name__ == "__main__":  # write the reference with the implementation on the path

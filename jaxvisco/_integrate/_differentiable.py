@@ -623,16 +623,19 @@ def differentiate(sol, rec, primals, tangents, *, scheme, solver, use_v0, save_g
 # call the first for jvp/jacfwd, the second for grad/vjp), and `lax.custom_linear_solve`,
 # which carried the pair before, traces both (and batches both, under jacfwd) as soon as
 # the tangent is formed: the adjoint sweep was 40 % of tracing jacfwd of a run. A
-# primitive traces the sweep it runs only, and only when its program is lowered; its
-# batching rule is vmap of that sweep (jacfwd of the 3D relaxation test: trace + lower
-# 13.4 s -> 9.7 s). It is built with equinox's filter-primitive helpers, on which lineax
+# primitive traces the sweep it runs only, and only when its program is lowered; a batch
+# of its (co)tangents (jacfwd, jacrev) is the sweep vmapped inside one primitive
+# (`_sweep_batch_tree`), which the persistent cache stores as it stores the unbatched one,
+# any other batch the sweep traced under vmap (jacfwd of the 3D relaxation test: trace +
+# lower 13.4 s -> 9.7 s). It is built with equinox's filter-primitive helpers, on which lineax
 # (a dependency) builds its `linear_solve_p`; JAX's own lazily transposed
 # `custom_derivatives.linear_call` has no batching rule (jax 0.10).
 @dataclasses.dataclass(frozen=True, eq=False)
 class _SweepConfig:
     """The static half of a sweep primitive: the loop's settings, which scene leaves are
     differentiated (`where`), the shapes of the input tangents `spec_a` and of the frame
-    tangents `spec_out`, and the direction (`transpose`: the adjoint sweep)."""
+    tangents `spec_out`, the direction (`transpose`: the adjoint sweep) and, for a batch
+    of tangents or cotangents (`_sweep_batch`), its size `batch` (0: none)."""
 
     scheme: object
     solver: object
@@ -644,6 +647,7 @@ class _SweepConfig:
     spec_a: object
     spec_out: object
     transpose: bool
+    batch: int = 0
 
     def flipped(self):
         return dataclasses.replace(self, transpose=not self.transpose)
@@ -668,6 +672,9 @@ def _sweep_impl(dyn, lin, cfg):
 
 
 def _sweep_run(dyn, lin, cfg):
+    if cfg.batch:  # a batch of (co)tangents along their first axis, the primal unbatched
+        one = dataclasses.replace(cfg, batch=0)
+        return jax.vmap(lambda b: _sweep_run(dyn, b, one))(lin)
     sw = cfg.sweep(dyn)
     if not cfg.transpose:
         return _sweep(sw, lin)
@@ -680,7 +687,8 @@ def _sweep_run(dyn, lin, cfg):
 
 def _sweep_abstract_eval(dyn, lin, cfg):
     del dyn, lin
-    return jax.tree_util.tree_map(lambda v: jax.core.ShapedArray(v.shape, v.dtype),
+    lead = (cfg.batch,) if cfg.batch else ()
+    return jax.tree_util.tree_map(lambda v: jax.core.ShapedArray(lead + v.shape, v.dtype),
                                   cfg.spec_a if cfg.transpose else cfg.spec_out)
 
 
@@ -706,3 +714,44 @@ def _sweep_transpose(inputs, cts):
 _sweep_p = eqxi.create_vprim("jaxvisco_sweep", eqxi.filter_primitive_def(_sweep_impl),
                              eqxi.filter_primitive_def(_sweep_abstract_eval), eqxi.filter_primitive_jvp(_sweep_jvp),
                              eqxi.filter_primitive_transpose(materialise_zeros=True)(_sweep_transpose))
+
+
+class _General(Exception):
+    """A batch that `_sweep_batch` leaves to equinox's rule."""
+
+
+def _sweep_batch_tree(inputs, axes, size):
+    """A batch of input tangents (`jax.jacfwd`) or of frame cotangents (`jax.jacrev`)
+    for one primal run: the sweep primitive itself with the batch along the first axis
+    of every (co)tangent (`_SweepConfig.batch`), so that its program is one call that the
+    persistent cache stores (`_export.inline`) as the unbatched sweep's is."""
+    dyn, lin, cfg = inputs
+    dyn_axes, lin_axes, _ = axes
+    if cfg.batch or jax.tree_util.tree_leaves(dyn_axes):
+        raise _General
+    first = lambda x, a: (jnp.broadcast_to(x, (size,) + x.shape) if a is None  # noqa: E731
+                          else jnp.moveaxis(x, a, 0))
+    lin = jax.tree_util.tree_map(lambda x, a: None if x is None else first(x, a), lin, lin_axes,
+                                 is_leaf=lambda x: x is None)
+    out = eqxi.filter_primitive_bind(_sweep_p, dyn, lin, dataclasses.replace(cfg, batch=size))
+    return out, jax.tree_util.tree_map(lambda _: 0, out)
+
+
+def _register_sweep_batch():
+    """Batches of (co)tangents of one run by `_sweep_batch_tree`; any other batch (of
+    primal runs, or of a batch) by equinox's rule: the sweep traced under `jax.vmap`."""
+    from jax.interpreters import batching
+
+    general = batching.fancy_primitive_batchers[_sweep_p]
+
+    def rule(axis_data, vals, dims, **params):
+        try:
+            tree_rule = eqxi.filter_primitive_batching(lambda i, a: _sweep_batch_tree(i, a, axis_data.size))
+            return tree_rule(vals, dims, **params)
+        except _General:
+            return general(axis_data, vals, dims, **params)
+
+    batching.fancy_primitive_batchers[_sweep_p] = rule
+
+
+_register_sweep_batch()
