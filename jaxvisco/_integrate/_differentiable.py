@@ -635,7 +635,7 @@ class _SweepConfig:
     """The static half of a sweep primitive: the loop's settings, which scene leaves are
     differentiated (`where`), the shapes of the input tangents `spec_a` and of the frame
     tangents `spec_out`, the direction (`transpose`: the adjoint sweep) and, for a batch
-    of tangents or cotangents (`_sweep_batch`), its size `batch` (0: none)."""
+    of tangents or cotangents (`_sweep_batch_tree`), its size `batch` (0: none)."""
 
     scheme: object
     solver: object
@@ -717,7 +717,7 @@ _sweep_p = eqxi.create_vprim("jaxvisco_sweep", eqxi.filter_primitive_def(_sweep_
 
 
 class _General(Exception):
-    """A batch that `_sweep_batch` leaves to equinox's rule."""
+    """A batch that `_sweep_batch_tree` leaves to equinox's rule."""
 
 
 def _sweep_batch_tree(inputs, axes, size):
