@@ -129,14 +129,11 @@ def measure(case, reps, what):
     if "first" in what:
         res["first_forward"] = run(case, "first_forward", env=env)
         res["first_grad"] = run(case, "first_grad", env=env)
-    if "cached" in what:
-        with tempfile.TemporaryDirectory() as d:
-            res["cached_first_process"] = run(case, "cached", d, env=env)  # fills the cache
-            res["cached_second_process"] = run(case, "cached", d, env=env)
-    if "cached_jacfwd" in what:
-        with tempfile.TemporaryDirectory() as d:
-            res["cached_jacfwd_first_process"] = run(case, "cached_jacfwd", d, env=env)
-            res["cached_jacfwd_second_process"] = run(case, "cached_jacfwd", d, env=env)
+    for mode in ("cached", "cached_jacfwd"):
+        if mode in what:
+            with tempfile.TemporaryDirectory() as d:
+                res[f"{mode}_first_process"] = run(case, mode, d, env=env)  # fills the cache
+                res[f"{mode}_second_process"] = run(case, mode, d, env=env)
     if "memory" in what:
         res["memory_forward"] = run(case, "memory_forward", env=env)
         res["memory_grad"] = run(case, "memory_grad", env=env)
